@@ -1,0 +1,143 @@
+//! 3×3-block sparse storage of the system matrix.
+//!
+//! [`BlockPattern`] is computed once per mesh: the node adjacency in
+//! compressed sparse row form (both triangles, columns sorted), the slot of
+//! every diagonal block, and for every element the 16 slots its blocks
+//! scatter into. [`BlockCsr`] holds one value per slot and is refilled in
+//! place every step, so assembly allocates nothing.
+
+use std::sync::Arc;
+
+use crate::math::{Mat3, Vec3};
+
+/// Block sparsity pattern of a mesh's system matrix.
+#[derive(Debug, Clone, PartialEq)]
+pub struct BlockPattern {
+    /// Number of block rows (nodes).
+    pub n: usize,
+    /// Row start offsets, length `n + 1`.
+    pub row_ptr: Vec<usize>,
+    /// Column (node) of every slot, sorted within each row.
+    pub col_idx: Vec<usize>,
+    /// Slot of the diagonal block of every row.
+    pub diag: Vec<usize>,
+    /// For every element, the slot of block `(a, b)` at index `4a + b`.
+    pub element_slots: Vec<[usize; 16]>,
+}
+
+impl BlockPattern {
+    /// Builds the pattern of `n` nodes connected by tetrahedra `tets`.
+    pub fn new(n: usize, tets: &[[usize; 4]]) -> Self {
+        let mut adj: Vec<Vec<usize>> = vec![Vec::new(); n];
+        for (i, list) in adj.iter_mut().enumerate() {
+            list.push(i);
+        }
+        for t in tets {
+            for &a in t {
+                for &b in t {
+                    adj[a].push(b);
+                }
+            }
+        }
+        let mut row_ptr = Vec::with_capacity(n + 1);
+        let mut col_idx = Vec::new();
+        row_ptr.push(0);
+        for list in &mut adj {
+            list.sort_unstable();
+            list.dedup();
+            col_idx.extend_from_slice(list);
+            row_ptr.push(col_idx.len());
+        }
+        let mut p = Self {
+            n,
+            row_ptr,
+            col_idx,
+            diag: Vec::new(),
+            element_slots: Vec::new(),
+        };
+        p.diag = (0..n).map(|i| p.slot(i, i).unwrap_or(usize::MAX)).collect();
+        p.element_slots = tets
+            .iter()
+            .map(|t| {
+                let mut s = [0usize; 16];
+                for a in 0..4 {
+                    for b in 0..4 {
+                        s[4 * a + b] = p.slot(t[a], t[b]).unwrap_or(usize::MAX);
+                    }
+                }
+                s
+            })
+            .collect();
+        p
+    }
+
+    /// Slot of block `(row, col)`, if present.
+    pub fn slot(&self, row: usize, col: usize) -> Option<usize> {
+        let (s, e) = (self.row_ptr[row], self.row_ptr[row + 1]);
+        self.col_idx[s..e].binary_search(&col).ok().map(|k| s + k)
+    }
+
+    /// Number of stored blocks.
+    pub fn nnz(&self) -> usize {
+        self.col_idx.len()
+    }
+}
+
+/// A symmetric 3×3-block sparse matrix over a shared [`BlockPattern`].
+#[derive(Debug, Clone)]
+pub struct BlockCsr {
+    /// The pattern (shared with factorizations and workers).
+    pub pattern: Arc<BlockPattern>,
+    /// One block per slot.
+    pub values: Vec<Mat3>,
+}
+
+impl BlockCsr {
+    /// A zero matrix over `pattern`.
+    pub fn zeros(pattern: Arc<BlockPattern>) -> Self {
+        let values = vec![Mat3::zeros(); pattern.nnz()];
+        Self { pattern, values }
+    }
+
+    /// Number of block rows.
+    pub fn n(&self) -> usize {
+        self.pattern.n
+    }
+
+    /// Sets every block to zero.
+    pub fn clear(&mut self) {
+        self.values.fill(Mat3::zeros());
+    }
+
+    /// `y = A x`.
+    pub fn mul_vec(&self, x: &[Vec3], y: &mut [Vec3]) {
+        let p = &*self.pattern;
+        for (i, yi) in y.iter_mut().enumerate().take(p.n) {
+            let mut acc = Vec3::zeros();
+            for s in p.row_ptr[i]..p.row_ptr[i + 1] {
+                acc += self.values[s] * x[p.col_idx[s]];
+            }
+            *yi = acc;
+        }
+    }
+
+    /// Diagonal block of row `i`.
+    pub fn diag(&self, i: usize) -> &Mat3 {
+        &self.values[self.pattern.diag[i]]
+    }
+
+    /// Dense copy (tests and small references only).
+    pub fn to_dense(&self) -> nalgebra::DMatrix<f64> {
+        let n = self.n();
+        let p = &*self.pattern;
+        let mut d = nalgebra::DMatrix::zeros(3 * n, 3 * n);
+        for i in 0..n {
+            for s in p.row_ptr[i]..p.row_ptr[i + 1] {
+                let j = p.col_idx[s];
+                d.fixed_view_mut::<3, 3>(3 * i, 3 * j)
+                    .copy_from(&self.values[s]);
+            }
+        }
+        d
+    }
+}

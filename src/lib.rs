@@ -1,0 +1,53 @@
+//! # bevy_soft_tissue
+//!
+//! Real-time finite-element soft tissue with accurate contacts, for Bevy.
+//!
+//! The crate has two layers:
+//!
+//! - **The numerical core** — [`mesh`], [`material`], [`fem`], [`solver`],
+//!   [`body`] (and contacts). It has no Bevy types, works in `f64`, takes its
+//!   scratch memory explicitly and allocates nothing inside per-step loops. It
+//!   can be used and tested on its own.
+//! - **The Bevy plugin** — a thin ECS layer over the core.
+//!
+//! ## Method
+//! Co-rotational linear tetrahedra with per-element Young's modulus, the
+//! linearized implicit Euler step `(M + hB + h²K) a = b` solved by a
+//! conjugate gradient, preconditioned by an `LDLᵀ` factorization that a
+//! background thread refreshes at low rate and that is warped by the node
+//! rotations since it was made (`P = Rᵀ L D Lᵀ R`). See
+//! [`solver`] and [`body`].
+//!
+//! ## Quick start (core only)
+//! ```
+//! use bevy_soft_tissue::prelude::*;
+//!
+//! let mesh = generate::box_mesh(v3(0.0, 0.0, 0.0), v3(0.1, 0.02, 0.02), [10, 2, 2]).unwrap();
+//! let settings = BodySettings { gravity: Some(v3(0.0, 0.0, -9.81)), ..Default::default() };
+//! let mut body = SoftBody::new(mesh, Material::new(1000.0, 1e5, 0.3), settings).unwrap();
+//! body.fix_where(|p| p.x < 1e-9);
+//! for _ in 0..10 {
+//!     let report = body.step(0.01).unwrap();
+//!     assert!(report.cg.converged);
+//! }
+//! ```
+
+pub mod body;
+pub mod error;
+pub mod fem;
+pub mod material;
+pub mod math;
+pub mod mesh;
+pub mod solver;
+
+/// The most used items.
+pub mod prelude {
+    pub use crate::body::{BodySettings, NodeConstraint, SoftBody, StepReport, StepTimings};
+    pub use crate::error::{Result, SoftTissueError};
+    pub use crate::fem::RotationMethod;
+    pub use crate::material::{Material, RayleighDamping, StiffnessField, Transition};
+    pub use crate::math::{Mat3, Vec3, v3};
+    pub use crate::mesh::{Surface, TetMesh, ValidateOptions, generate, io};
+    pub use crate::solver::PreconditionerKind;
+    pub use crate::solver::cg::{CgReport, CgSettings};
+}

@@ -1,0 +1,89 @@
+//! Small dense linear algebra shared by the core (`f64` throughout).
+//!
+//! The core uses [`nalgebra`] for 3-vectors and 3×3 matrices. Bevy (glam
+//! `f32`) and parry (glam `f64`) types are converted only at the edges.
+
+use nalgebra::{Matrix3, Vector3};
+
+/// A 3-vector of `f64`.
+pub type Vec3 = Vector3<f64>;
+/// A 3×3 matrix of `f64`.
+pub type Mat3 = Matrix3<f64>;
+
+/// Builds a [`Vec3`].
+#[inline]
+pub fn v3(x: f64, y: f64, z: f64) -> Vec3 {
+    Vec3::new(x, y, z)
+}
+
+/// Rotation part of the polar decomposition `F = R S`, defined for flat and
+/// inverted `F`: from the SVD `F = U Σ Vᵀ`, with the sign of the column of `U`
+/// belonging to the smallest singular value flipped when `det(U Vᵀ) < 0`, so
+/// that `R` is always a proper rotation.
+pub fn polar_rotation(f: &Mat3) -> Mat3 {
+    if !f.iter().all(|x| x.is_finite()) {
+        return Mat3::identity();
+    }
+    let svd = f.svd(true, true);
+    let (Some(mut u), Some(v_t)) = (svd.u, svd.v_t) else {
+        return Mat3::identity();
+    };
+    let r = u * v_t;
+    if r.determinant() < 0.0 {
+        // nalgebra sorts singular values in decreasing order: the last one is the smallest.
+        let mut smallest = 0;
+        for i in 1..3 {
+            if svd.singular_values[i] < svd.singular_values[smallest] {
+                smallest = i;
+            }
+        }
+        for k in 0..3 {
+            u[(k, smallest)] = -u[(k, smallest)];
+        }
+        return u * v_t;
+    }
+    r
+}
+
+/// Orthonormal frame built from two edges by Gram–Schmidt: columns
+/// `(x, y, z)` with `x ∥ a`, `z ∥ a × b`. Falls back to the identity for
+/// collinear edges.
+pub fn edge_frame(a: &Vec3, b: &Vec3) -> Mat3 {
+    let x = a.normalize();
+    let n = a.cross(b);
+    if !x.iter().all(|c| c.is_finite()) || n.norm() <= 1e-300 {
+        return Mat3::identity();
+    }
+    let z = n.normalize();
+    let y = z.cross(&x);
+    Mat3::from_columns(&[x, y, z])
+}
+
+/// Solves `L x = b` for a unit lower-triangular 3×3 `L` given by its three
+/// sub-diagonal entries `(l10, l20, l21)`.
+#[inline]
+pub fn unit_lower_solve(l: &[f64; 3], b: &Vec3) -> Vec3 {
+    let x0 = b.x;
+    let x1 = b.y - l[0] * x0;
+    let x2 = b.z - l[1] * x0 - l[2] * x1;
+    Vec3::new(x0, x1, x2)
+}
+
+/// Solves `Lᵀ x = b` for a unit lower-triangular 3×3 `L` given by `(l10, l20, l21)`.
+#[inline]
+pub fn unit_lower_t_solve(l: &[f64; 3], b: &Vec3) -> Vec3 {
+    let x2 = b.z;
+    let x1 = b.y - l[2] * x2;
+    let x0 = b.x - l[0] * x1 - l[1] * x2;
+    Vec3::new(x0, x1, x2)
+}
+
+/// Applies [`unit_lower_solve`] to each column of `b`.
+#[inline]
+pub fn unit_lower_solve_mat(l: &[f64; 3], b: &Mat3) -> Mat3 {
+    let mut out = Mat3::zeros();
+    for c in 0..3 {
+        out.set_column(c, &unit_lower_solve(l, &b.column(c).into_owned()));
+    }
+    out
+}

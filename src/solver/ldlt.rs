@@ -1,0 +1,342 @@
+//! Sparse `LDLᵀ` factorization with 3×3 node supernodes.
+//!
+//! The factor is organised by mesh node: every node is a supernode of three
+//! columns that share one sparsity pattern, so `L` is stored as dense 3×3
+//! blocks (one per nonzero node pair) plus, per node, a unit lower-triangular
+//! 3×3 diagonal block and three pivots of `D`.
+//!
+//! - **Symbolic analysis** ([`LdltSymbolic::new`], once per mesh):
+//!   approximate minimum degree ordering of the node graph (faer's AMD), the
+//!   elimination tree, the column structure of `L`, and for every row the
+//!   topologically ordered reach with the storage slot each entry fills.
+//! - **Numeric factorization** ([`LdltSymbolic::factorize`]): up-looking
+//!   block `LDLᵀ`, allocation-free into a recycled [`LdltFactor`]. A
+//!   non-positive pivot is reported as [`SoftTissueError::NotPositiveDefinite`].
+//! - **Solves**: full forward/diagonal/backward solves for the CG
+//!   preconditioner, and the reach-restricted forward solve of the three unit
+//!   columns of one node ([`LdltFactor::node_forward_solve`]), whose nonzeros
+//!   lie only on the node's elimination-tree path to the root. This is what
+//!   the contact compliance is built from.
+
+use std::sync::Arc;
+
+use faer::dyn_stack::{MemBuffer, MemStack};
+use faer::sparse::SymbolicSparseColMatRef;
+use faer::sparse::linalg::amd;
+
+use crate::error::{Result, SoftTissueError};
+use crate::fem::assembly::{BlockCsr, BlockPattern};
+use crate::math::{Mat3, Vec3, unit_lower_solve, unit_lower_solve_mat, unit_lower_t_solve};
+
+/// Marker for "no parent" in the elimination tree.
+pub const NONE: usize = usize::MAX;
+
+/// Symbolic analysis of the node-blocked `LDLᵀ` factorization.
+#[derive(Debug, Clone)]
+pub struct LdltSymbolic {
+    /// Number of nodes.
+    pub n: usize,
+    /// `perm[new] = old` node.
+    pub perm: Vec<usize>,
+    /// `iperm[old] = new` node.
+    pub iperm: Vec<usize>,
+    /// Elimination-tree parent of each (permuted) node, [`NONE`] for roots.
+    pub parent: Vec<usize>,
+    /// Column start offsets of `L` (strictly lower blocks), length `n + 1`.
+    pub col_ptr: Vec<usize>,
+    /// Row (permuted node) of every block of `L`, ascending within a column.
+    pub row_idx: Vec<usize>,
+    /// For row `k`: `reach_ptr[k]..reach_ptr[k+1]` indexes `reach_col` / `reach_dst`.
+    reach_ptr: Vec<usize>,
+    /// Columns `i < k` with `L_ki ≠ 0`, in topological order.
+    reach_col: Vec<usize>,
+    /// Storage slot of `L_ki`.
+    reach_dst: Vec<usize>,
+    /// For row `k`: the lower entries of `A` as `(permuted col i, slot of A(perm i, perm k))`.
+    a_ptr: Vec<usize>,
+    a_entries: Vec<(usize, usize)>,
+    /// Slot of each permuted node's diagonal block in `A`.
+    a_diag: Vec<usize>,
+}
+
+/// Numeric values of an `LDLᵀ` factorization (see [`LdltSymbolic`]).
+#[derive(Debug, Clone)]
+pub struct LdltFactor {
+    /// The symbolic analysis this factor belongs to.
+    pub symbolic: Arc<LdltSymbolic>,
+    /// Off-diagonal blocks `L_ri`, laid out like [`LdltSymbolic::row_idx`].
+    pub l: Vec<Mat3>,
+    /// Sub-diagonal entries `(l10, l20, l21)` of each unit lower diagonal block.
+    pub ldiag: Vec<[f64; 3]>,
+    /// Pivots of `D` per node.
+    pub d: Vec<Vec3>,
+}
+
+impl LdltSymbolic {
+    /// Analyses `pattern`: AMD ordering, elimination tree and structure of `L`.
+    pub fn new(pattern: &BlockPattern) -> Result<Self> {
+        let n = pattern.n;
+        // Fill-reducing ordering of the node graph.
+        let mut perm = vec![0usize; n];
+        let mut iperm = vec![0usize; n];
+        if n > 0 {
+            let sym = SymbolicSparseColMatRef::new_checked(
+                n,
+                n,
+                &pattern.row_ptr,
+                None,
+                &pattern.col_idx,
+            );
+            let mut mem = MemBuffer::new(amd::order_scratch::<usize>(n, pattern.nnz()));
+            amd::order(
+                &mut perm,
+                &mut iperm,
+                sym,
+                amd::Control::default(),
+                MemStack::new(&mut mem),
+            )
+            .map_err(|_| SoftTissueError::TooLarge {
+                what: "AMD ordering",
+                size: n,
+                limit: u32::MAX as usize,
+            })?;
+        }
+        // Lower entries of A per permuted row.
+        let mut a_ptr = vec![0usize; n + 1];
+        let mut a_entries = Vec::with_capacity(pattern.nnz() / 2);
+        let mut a_diag = vec![0usize; n];
+        for k in 0..n {
+            let old_k = perm[k];
+            for s in pattern.row_ptr[old_k]..pattern.row_ptr[old_k + 1] {
+                let old_i = pattern.col_idx[s];
+                let i = iperm[old_i];
+                if i < k {
+                    // Block A(old_i, old_k) lives in row old_i.
+                    let slot = pattern.slot(old_i, old_k).unwrap_or(usize::MAX);
+                    a_entries.push((i, slot));
+                } else if i == k {
+                    a_diag[k] = s;
+                }
+            }
+            a_ptr[k + 1] = a_entries.len();
+        }
+        // Elimination tree (Liu's algorithm with path compression).
+        let mut parent = vec![NONE; n];
+        let mut ancestor = vec![NONE; n];
+        for k in 0..n {
+            for &(mut i, _) in &a_entries[a_ptr[k]..a_ptr[k + 1]] {
+                while i != NONE && i < k {
+                    let next = ancestor[i];
+                    ancestor[i] = k;
+                    if next == NONE {
+                        parent[i] = k;
+                        break;
+                    }
+                    i = next;
+                }
+            }
+        }
+        // Row reaches (topological order) and column counts.
+        let mut mark = vec![NONE; n];
+        let mut reach_ptr = vec![0usize; n + 1];
+        let mut reach_col = Vec::new();
+        let mut stack = Vec::with_capacity(n);
+        let mut path = Vec::with_capacity(n);
+        let mut col_count = vec![0usize; n];
+        for k in 0..n {
+            mark[k] = k;
+            stack.clear();
+            for &(i0, _) in &a_entries[a_ptr[k]..a_ptr[k + 1]] {
+                let mut i = i0;
+                path.clear();
+                while i != NONE && mark[i] != k {
+                    path.push(i);
+                    mark[i] = k;
+                    i = parent[i];
+                }
+                // Push the path so that descendants come before ancestors.
+                while let Some(p) = path.pop() {
+                    stack.push(p);
+                }
+            }
+            // `stack` popped from the end gives a topological order; store reversed.
+            for &i in stack.iter().rev() {
+                reach_col.push(i);
+                col_count[i] += 1;
+            }
+            reach_ptr[k + 1] = reach_col.len();
+        }
+        let mut col_ptr = vec![0usize; n + 1];
+        for i in 0..n {
+            col_ptr[i + 1] = col_ptr[i] + col_count[i];
+        }
+        let mut fill = col_ptr[..n].to_vec();
+        let mut row_idx = vec![0usize; col_ptr[n]];
+        let mut reach_dst = vec![0usize; reach_col.len()];
+        for k in 0..n {
+            for t in reach_ptr[k]..reach_ptr[k + 1] {
+                let i = reach_col[t];
+                row_idx[fill[i]] = k;
+                reach_dst[t] = fill[i];
+                fill[i] += 1;
+            }
+        }
+        Ok(Self {
+            n,
+            perm,
+            iperm,
+            parent,
+            col_ptr,
+            row_idx,
+            reach_ptr,
+            reach_col,
+            reach_dst,
+            a_ptr,
+            a_entries,
+            a_diag,
+        })
+    }
+
+    /// Number of 3×3 blocks in the strictly lower part of `L`.
+    pub fn nnz_blocks(&self) -> usize {
+        self.row_idx.len()
+    }
+
+    /// An empty factor with storage for this structure.
+    pub fn alloc_factor(self: &Arc<Self>) -> LdltFactor {
+        LdltFactor {
+            symbolic: Arc::clone(self),
+            l: vec![Mat3::zeros(); self.nnz_blocks()],
+            ldiag: vec![[0.0; 3]; self.n],
+            d: vec![Vec3::zeros(); self.n],
+        }
+    }
+
+    /// Factorizes `a` into `out` (which must come from [`Self::alloc_factor`]), using
+    /// `work` (length `n`) as scratch. Allocation-free.
+    pub fn factorize(
+        &self,
+        a: &BlockCsr,
+        out: &mut LdltFactor,
+        work: &mut Vec<Mat3>,
+    ) -> Result<()> {
+        let n = self.n;
+        work.clear();
+        work.resize(n, Mat3::zeros());
+        let y = work;
+        for k in 0..n {
+            for &(i, slot) in &self.a_entries[self.a_ptr[k]..self.a_ptr[k + 1]] {
+                y[i] = a.values[slot];
+            }
+            let mut dkk = a.values[self.a_diag[k]];
+            for t in self.reach_ptr[k]..self.reach_ptr[k + 1] {
+                let i = self.reach_col[t];
+                let dst = self.reach_dst[t];
+                let w = unit_lower_solve_mat(&out.ldiag[i], &y[i]);
+                y[i] = Mat3::zeros();
+                for p in self.col_ptr[i]..dst {
+                    let r = self.row_idx[p];
+                    y[r] -= out.l[p] * w;
+                }
+                let di = out.d[i];
+                let mut lki = w.transpose();
+                for c in 0..3 {
+                    let inv = 1.0 / di[c];
+                    for r in 0..3 {
+                        lki[(r, c)] *= inv;
+                    }
+                }
+                dkk -= lki * w;
+                out.l[dst] = lki;
+            }
+            // Dense LDLᵀ of the 3×3 diagonal block (lower triangle).
+            let d0 = dkk[(0, 0)];
+            let l10 = dkk[(1, 0)] / d0;
+            let l20 = dkk[(2, 0)] / d0;
+            let d1 = dkk[(1, 1)] - l10 * l10 * d0;
+            let l21 = (dkk[(2, 1)] - l20 * l10 * d0) / d1;
+            let d2 = dkk[(2, 2)] - l20 * l20 * d0 - l21 * l21 * d1;
+            let scale = dkk[(0, 0)].abs().max(dkk[(1, 1)].abs()).max(dkk[(2, 2)].abs());
+            for piv in [d0, d1, d2] {
+                if !piv.is_finite() || piv <= 1e-14 * scale || scale == 0.0 {
+                    return Err(SoftTissueError::NotPositiveDefinite {
+                        node: self.perm[k],
+                        pivot: piv,
+                    });
+                }
+            }
+            out.ldiag[k] = [l10, l20, l21];
+            out.d[k] = Vec3::new(d0, d1, d2);
+        }
+        Ok(())
+    }
+}
+
+impl LdltFactor {
+    /// Forward solve `L y = y` in permuted numbering, in place.
+    pub fn forward(&self, y: &mut [Vec3]) {
+        let s = &*self.symbolic;
+        for j in 0..s.n {
+            let yj = unit_lower_solve(&self.ldiag[j], &y[j]);
+            y[j] = yj;
+            for p in s.col_ptr[j]..s.col_ptr[j + 1] {
+                y[s.row_idx[p]] -= self.l[p] * yj;
+            }
+        }
+    }
+
+    /// Backward solve `Lᵀ y = y` in permuted numbering, in place.
+    pub fn backward(&self, y: &mut [Vec3]) {
+        let s = &*self.symbolic;
+        for j in (0..s.n).rev() {
+            let mut acc = y[j];
+            for p in s.col_ptr[j]..s.col_ptr[j + 1] {
+                acc -= self.l[p].transpose() * y[s.row_idx[p]];
+            }
+            y[j] = unit_lower_t_solve(&self.ldiag[j], &acc);
+        }
+    }
+
+    /// Solves `(L D Lᵀ) x = b` in original numbering; `tmp` is scratch of length `n`.
+    pub fn solve(&self, b: &[Vec3], x: &mut [Vec3], tmp: &mut [Vec3]) {
+        let s = &*self.symbolic;
+        for k in 0..s.n {
+            tmp[k] = b[s.perm[k]];
+        }
+        self.forward(tmp);
+        for k in 0..s.n {
+            tmp[k] = tmp[k].component_div(&self.d[k]);
+        }
+        self.backward(tmp);
+        for k in 0..s.n {
+            x[s.perm[k]] = tmp[k];
+        }
+    }
+
+    /// Reach-restricted forward solve of the three unit columns of (original) node
+    /// `node`: `Z = L⁻¹ E_node`. Nonzero rows lie on the elimination-tree path of
+    /// `iperm[node]` to its root; they are appended to `path` (permuted node ids,
+    /// ascending) and `blocks` (3×3, column `c` is the solution for unit vector `c`).
+    /// `work` is dense scratch of length `n`, zero on entry and on exit.
+    pub fn node_forward_solve(
+        &self,
+        node: usize,
+        work: &mut [Mat3],
+        path: &mut Vec<usize>,
+        blocks: &mut Vec<Mat3>,
+    ) {
+        let s = &*self.symbolic;
+        let mut j = s.iperm[node];
+        work[j] = Mat3::identity();
+        while j != NONE {
+            let zj = unit_lower_solve_mat(&self.ldiag[j], &work[j]);
+            work[j] = Mat3::zeros();
+            for p in s.col_ptr[j]..s.col_ptr[j + 1] {
+                work[s.row_idx[p]] -= self.l[p] * zj;
+            }
+            path.push(j);
+            blocks.push(zj);
+            j = s.parent[j];
+        }
+    }
+}

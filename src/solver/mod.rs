@@ -1,0 +1,459 @@
+//! Linear solver of the implicit step: conjugate gradient with a choice of preconditioners.
+//!
+//! The implicit system `A a = b` (see [`crate::body`]) is solved by
+//! [`cg::solve`] with one of the preconditioners of [`PreconditionerKind`]:
+//!
+//! | kind | what `P` is | refresh |
+//! |---|---|---|
+//! | `None` | identity | – |
+//! | `Jacobi` | `diag(A)` | every step |
+//! | `Exact` | `L D Lᵀ` of the current `A` (reference: CG converges in ≤ 2 iterations) | every step |
+//! | `Periodic { every }` | `Rᵀ L D Lᵀ R` of an older `A`, warped by the node rotations since | every `every` steps, on the stepping thread |
+//! | `Async` | same warp, factor made by a background worker | as soon as the worker is done; never blocks a step (but the very first) |
+//!
+//! The rotation warp follows the paper (eq. 4): with `R_i` the rotation of node
+//! `i` now and `R̂_i` when the factored matrix was handed over, `Q_i = R_i R̂_iᵀ`
+//! and `P⁻¹ = Q (L D Lᵀ)⁻¹ Qᵀ`. Node rotations are the polar part of the sum
+//! of the rotations of the elements around the node.
+//!
+//! ## Asynchronous refresh
+//! [`AsyncFactorizer`] owns a worker thread (crossbeam channels). At the start
+//! of a step a finished factor, if any, is swapped in; then, if the worker is
+//! idle, the current matrix and node rotations are copied into recycled
+//! buffers and handed over. Buffers circulate between the two threads, so the
+//! steady state allocates nothing. Dropping the factorizer stops and joins the
+//! worker.
+
+pub mod cg;
+pub mod ldlt;
+
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::thread::JoinHandle;
+use std::time::Instant;
+
+use crossbeam::channel::{Receiver, Sender, TryRecvError, bounded};
+
+use crate::error::{Result, SoftTissueError};
+use crate::fem::assembly::BlockCsr;
+use crate::math::{Mat3, Vec3};
+use ldlt::{LdltFactor, LdltSymbolic};
+
+/// Applies `z = P⁻¹ r`.
+pub trait Preconditioner: Send {
+    /// Computes `z = P⁻¹ r`.
+    fn apply(&mut self, r: &[Vec3], z: &mut [Vec3]);
+}
+
+/// Which preconditioner a body uses.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum PreconditionerKind {
+    /// No preconditioning.
+    None,
+    /// Diagonal (Jacobi).
+    Jacobi,
+    /// `LDLᵀ` of the current matrix, every step.
+    Exact,
+    /// `LDLᵀ` refreshed every `every` steps with the rotation warp.
+    Periodic {
+        /// Refresh period in steps (≥ 1).
+        every: u32,
+    },
+    /// `LDLᵀ` refreshed by a background worker with the rotation warp.
+    #[default]
+    Async,
+}
+
+impl PreconditionerKind {
+    /// Whether this kind keeps an `LDLᵀ` factor.
+    pub fn has_factor(&self) -> bool {
+        matches!(self, Self::Exact | Self::Periodic { .. } | Self::Async)
+    }
+
+    /// Whether the factor is warped by node rotations.
+    pub fn needs_rotations(&self) -> bool {
+        matches!(self, Self::Periodic { .. } | Self::Async)
+    }
+}
+
+/// Counters of the preconditioner.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct PreconditionerStats {
+    /// Steps since the matrix in use was handed over for factorization.
+    pub factor_age: u64,
+    /// Factorizations swapped in since creation.
+    pub refreshes: u64,
+    /// Duration of the last factorization, seconds (on whichever thread made it).
+    pub factor_seconds: f64,
+    /// Seconds the stepping thread spent factorizing in the last update.
+    pub blocking_seconds: f64,
+    /// Factorizations that failed (the previous factor was kept).
+    pub failures: u64,
+}
+
+struct Job {
+    values: Vec<Mat3>,
+    rotations: Vec<Mat3>,
+    factor: LdltFactor,
+    step: u64,
+}
+
+struct Done {
+    values: Vec<Mat3>,
+    rotations: Vec<Mat3>,
+    factor: LdltFactor,
+    step: u64,
+    result: Result<()>,
+    seconds: f64,
+}
+
+/// Background `LDLᵀ` worker (see the module docs).
+pub struct AsyncFactorizer {
+    tx: Option<Sender<Job>>,
+    rx: Receiver<Done>,
+    handle: Option<JoinHandle<()>>,
+    alive: Arc<AtomicBool>,
+    in_flight: bool,
+    spare: Option<(Vec<Mat3>, Vec<Mat3>, LdltFactor)>,
+}
+
+impl std::fmt::Debug for AsyncFactorizer {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("AsyncFactorizer")
+            .field("in_flight", &self.in_flight)
+            .finish()
+    }
+}
+
+impl AsyncFactorizer {
+    /// Starts a worker for matrices over `pattern` with analysis `symbolic`.
+    pub fn new(a: &BlockCsr, symbolic: &Arc<LdltSymbolic>) -> Self {
+        let (tx, job_rx) = bounded::<Job>(1);
+        let (done_tx, rx) = bounded::<Done>(1);
+        let alive = Arc::new(AtomicBool::new(true));
+        let pattern = Arc::clone(&a.pattern);
+        let sym = Arc::clone(symbolic);
+        let alive_w = Arc::clone(&alive);
+        let handle = std::thread::Builder::new()
+            .name("soft-tissue-ldlt".into())
+            .spawn(move || {
+                let mut work = Vec::with_capacity(sym.n);
+                let mut mat = BlockCsr {
+                    pattern,
+                    values: Vec::new(),
+                };
+                while let Ok(mut job) = job_rx.recv() {
+                    let t0 = Instant::now();
+                    mat.values = std::mem::take(&mut job.values);
+                    let result = sym.factorize(&mat, &mut job.factor, &mut work);
+                    let done = Done {
+                        values: std::mem::take(&mut mat.values),
+                        rotations: job.rotations,
+                        factor: job.factor,
+                        step: job.step,
+                        result,
+                        seconds: t0.elapsed().as_secs_f64(),
+                    };
+                    if done_tx.send(done).is_err() {
+                        break;
+                    }
+                }
+                alive_w.store(false, Ordering::SeqCst);
+            })
+            .ok();
+        let spare = Some((
+            a.values.clone(),
+            vec![Mat3::identity(); a.n()],
+            symbolic.alloc_factor(),
+        ));
+        Self {
+            tx: Some(tx),
+            rx,
+            handle,
+            alive,
+            in_flight: false,
+            spare,
+        }
+    }
+
+    /// A flag that turns false once the worker thread has exited.
+    pub fn alive_flag(&self) -> Arc<AtomicBool> {
+        Arc::clone(&self.alive)
+    }
+
+    /// Whether a factorization is running.
+    pub fn in_flight(&self) -> bool {
+        self.in_flight
+    }
+
+    fn try_take(&mut self, block: bool) -> Option<Done> {
+        if !self.in_flight {
+            return None;
+        }
+        let got = if block {
+            self.rx.recv().ok()
+        } else {
+            match self.rx.try_recv() {
+                Ok(d) => Some(d),
+                Err(TryRecvError::Empty) => None,
+                Err(TryRecvError::Disconnected) => {
+                    self.in_flight = false;
+                    None
+                }
+            }
+        };
+        if got.is_some() {
+            self.in_flight = false;
+        }
+        got
+    }
+
+    fn submit(&mut self, a: &BlockCsr, rotations: &[Mat3], step: u64) {
+        if self.in_flight {
+            return;
+        }
+        let (Some(tx), Some((mut values, mut rots, factor))) = (&self.tx, self.spare.take()) else {
+            return;
+        };
+        values.copy_from_slice(&a.values);
+        rots.copy_from_slice(rotations);
+        let job = Job {
+            values,
+            rotations: rots,
+            factor,
+            step,
+        };
+        if tx.send(job).is_ok() {
+            self.in_flight = true;
+        }
+    }
+}
+
+impl Drop for AsyncFactorizer {
+    fn drop(&mut self) {
+        self.tx = None;
+        // Drain a finished job so the worker is not stuck on a full channel.
+        while self.rx.try_recv().is_ok() {}
+        if let Some(h) = self.handle.take() {
+            // The worker finishes its current factorization, fails to send or sees the
+            // closed job channel, and exits.
+            let rx = self.rx.clone();
+            let drain = std::thread::spawn(move || while rx.recv().is_ok() {});
+            let _ = h.join();
+            let _ = drain.join();
+        }
+    }
+}
+
+/// `LDLᵀ` factor in use plus the rotations it was made with.
+#[derive(Debug)]
+pub struct FactorState {
+    /// The factor.
+    pub factor: LdltFactor,
+    /// Node rotations when the factored matrix was taken.
+    pub rotations: Vec<Mat3>,
+    /// Warp `Q_i = R_i R̂_iᵀ` from those rotations to the current ones.
+    pub warp: Vec<Mat3>,
+    /// Whether `warp` differs from the identity.
+    pub warped: bool,
+    /// Step at which the factored matrix was taken.
+    pub step: u64,
+    /// Bumped each time a new factor is swapped in.
+    pub version: u64,
+}
+
+/// A body's preconditioner: one of [`PreconditionerKind`] with its buffers.
+#[derive(Debug)]
+pub struct PreconditionerState {
+    kind: PreconditionerKind,
+    jacobi: Vec<Vec3>,
+    symbolic: Option<Arc<LdltSymbolic>>,
+    state: Option<FactorState>,
+    worker: Option<AsyncFactorizer>,
+    work: Vec<Mat3>,
+    tmp: Vec<Vec3>,
+    tmp2: Vec<Vec3>,
+    stats: PreconditionerStats,
+}
+
+impl PreconditionerState {
+    /// A preconditioner of `kind` for matrices over `a`'s pattern.
+    pub fn new(kind: PreconditionerKind, a: &BlockCsr) -> Result<Self> {
+        if let PreconditionerKind::Periodic { every: 0 } = kind {
+            return Err(SoftTissueError::InvalidParameter {
+                name: "Periodic.every",
+                value: 0.0,
+                reason: "refresh period must be ≥ 1 step",
+            });
+        }
+        let n = a.n();
+        let symbolic = if kind.has_factor() {
+            Some(Arc::new(LdltSymbolic::new(&a.pattern)?))
+        } else {
+            None
+        };
+        let worker = match (&symbolic, kind) {
+            (Some(s), PreconditionerKind::Async) => Some(AsyncFactorizer::new(a, s)),
+            _ => None,
+        };
+        Ok(Self {
+            kind,
+            jacobi: vec![Vec3::zeros(); n],
+            symbolic,
+            state: None,
+            worker,
+            work: Vec::with_capacity(n),
+            tmp: vec![Vec3::zeros(); n],
+            tmp2: vec![Vec3::zeros(); n],
+            stats: PreconditionerStats::default(),
+        })
+    }
+
+    /// The kind.
+    pub fn kind(&self) -> PreconditionerKind {
+        self.kind
+    }
+
+    /// Counters.
+    pub fn stats(&self) -> PreconditionerStats {
+        self.stats
+    }
+
+    /// The symbolic analysis, when the kind keeps a factor.
+    pub fn symbolic(&self) -> Option<&Arc<LdltSymbolic>> {
+        self.symbolic.as_ref()
+    }
+
+    /// The factor in use with its warp, when the kind keeps one.
+    pub fn factor_state(&self) -> Option<&FactorState> {
+        self.state.as_ref()
+    }
+
+    /// The background worker, for the `Async` kind.
+    pub fn worker(&self) -> Option<&AsyncFactorizer> {
+        self.worker.as_ref()
+    }
+
+    fn factorize_now(&mut self, a: &BlockCsr, rotations: &[Mat3], step: u64) -> Result<()> {
+        let Some(sym) = self.symbolic.clone() else {
+            return Ok(());
+        };
+        let t0 = Instant::now();
+        let st = self.state.get_or_insert_with(|| FactorState {
+            factor: sym.alloc_factor(),
+            rotations: rotations.to_vec(),
+            warp: vec![Mat3::identity(); rotations.len()],
+            warped: false,
+            step,
+            version: 0,
+        });
+        let res = sym.factorize(a, &mut st.factor, &mut self.work);
+        let dt = t0.elapsed().as_secs_f64();
+        self.stats.factor_seconds = dt;
+        self.stats.blocking_seconds += dt;
+        match res {
+            Ok(()) => {
+                st.rotations.copy_from_slice(rotations);
+                st.step = step;
+                st.version += 1;
+                self.stats.refreshes += 1;
+                Ok(())
+            }
+            Err(e) => {
+                self.stats.failures += 1;
+                self.state = None;
+                Err(e)
+            }
+        }
+    }
+
+    /// Refreshes the preconditioner for the matrix `a` of step `step`.
+    /// `rotations` are the current node rotations (only read by warped kinds).
+    pub fn update(&mut self, a: &BlockCsr, rotations: &[Mat3], step: u64) -> Result<()> {
+        self.stats.blocking_seconds = 0.0;
+        match self.kind {
+            PreconditionerKind::None => {}
+            PreconditionerKind::Jacobi => {
+                for i in 0..a.n() {
+                    let d = a.diag(i);
+                    self.jacobi[i] = Vec3::new(1.0 / d[(0, 0)], 1.0 / d[(1, 1)], 1.0 / d[(2, 2)]);
+                }
+            }
+            PreconditionerKind::Exact => self.factorize_now(a, rotations, step)?,
+            PreconditionerKind::Periodic { every } => {
+                let due = self
+                    .state
+                    .as_ref()
+                    .is_none_or(|s| step >= s.step + every as u64);
+                if due {
+                    self.factorize_now(a, rotations, step)?;
+                }
+            }
+            PreconditionerKind::Async => {
+                if self.state.is_none() {
+                    // First step: blocking is allowed.
+                    self.factorize_now(a, rotations, step)?;
+                } else if let Some(w) = &mut self.worker
+                    && let Some(mut done) = w.try_take(false)
+                {
+                    self.stats.factor_seconds = done.seconds;
+                    match done.result {
+                        Ok(()) => {
+                            if let Some(st) = &mut self.state {
+                                std::mem::swap(&mut st.factor, &mut done.factor);
+                                std::mem::swap(&mut st.rotations, &mut done.rotations);
+                                st.step = done.step;
+                                st.version += 1;
+                            }
+                            self.stats.refreshes += 1;
+                        }
+                        Err(_) => self.stats.failures += 1,
+                    }
+                    w.spare = Some((done.values, done.rotations, done.factor));
+                }
+                if let Some(w) = &mut self.worker {
+                    w.submit(a, rotations, step);
+                }
+            }
+        }
+        if let Some(st) = &mut self.state {
+            self.stats.factor_age = step.saturating_sub(st.step);
+            st.warped = self.kind.needs_rotations() && st.step != step;
+            if st.warped {
+                for i in 0..st.warp.len() {
+                    st.warp[i] = rotations[i] * st.rotations[i].transpose();
+                }
+            } else {
+                st.warp.fill(Mat3::identity());
+            }
+        }
+        Ok(())
+    }
+}
+
+impl Preconditioner for PreconditionerState {
+    fn apply(&mut self, r: &[Vec3], z: &mut [Vec3]) {
+        match (&self.kind, &self.state) {
+            (PreconditionerKind::None, _) => z.copy_from_slice(r),
+            (PreconditionerKind::Jacobi, _) => {
+                for i in 0..r.len() {
+                    z[i] = r[i].component_mul(&self.jacobi[i]);
+                }
+            }
+            (_, Some(st)) => {
+                if st.warped {
+                    for i in 0..r.len() {
+                        self.tmp2[i] = st.warp[i].transpose() * r[i];
+                    }
+                    st.factor.solve(&self.tmp2, z, &mut self.tmp);
+                    for zi in z.iter_mut().zip(&st.warp) {
+                        *zi.0 = zi.1 * *zi.0;
+                    }
+                } else {
+                    st.factor.solve(r, z, &mut self.tmp);
+                }
+            }
+            (_, None) => z.copy_from_slice(r),
+        }
+    }
+}
