@@ -52,6 +52,8 @@ pub struct BodySettings {
     pub cg: CgSettings,
     /// Gravity acceleration, if any.
     pub gravity: Option<Vec3>,
+    /// Contact compliance of this body; `None` uses the contact solver's default.
+    pub compliance: Option<crate::contact::ComplianceMode>,
 }
 
 impl Default for BodySettings {
@@ -61,6 +63,7 @@ impl Default for BodySettings {
             rotation: RotationMethod::Polar,
             cg: CgSettings::default(),
             gravity: None,
+            compliance: None,
         }
     }
 }
@@ -104,6 +107,7 @@ pub struct StepReport {
 /// A deformable tetrahedral body (see the module docs).
 #[derive(Debug)]
 pub struct SoftBody {
+    id: u64,
     mesh: TetMesh,
     surface: Surface,
     material: Material,
@@ -111,6 +115,7 @@ pub struct SoftBody {
     elements: Vec<Element>,
     mass: Vec<f64>,
     x: Vec<Vec3>,
+    x_start: Vec<Vec3>,
     v: Vec<Vec3>,
     accel: Vec<Vec3>,
     prescribed: Vec<Vec3>,
@@ -165,7 +170,10 @@ impl SoftBody {
         let precond = PreconditionerState::new(settings.preconditioner, &matrix)?;
         let surface = mesh.surface();
         let x = mesh.positions().to_vec();
+        static NEXT_ID: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(1);
         Ok(Self {
+            id: NEXT_ID.fetch_add(1, std::sync::atomic::Ordering::Relaxed),
+            x_start: x.clone(),
             surface,
             young,
             elements,
@@ -192,6 +200,16 @@ impl SoftBody {
             material,
             mesh,
         })
+    }
+
+    /// A process-unique id (contact caches are keyed by it).
+    pub fn id(&self) -> u64 {
+        self.id
+    }
+
+    /// Positions at the start of the current step (before free motion).
+    pub fn start_positions(&self) -> &[Vec3] {
+        &self.x_start
     }
 
     /// The rest mesh.
@@ -588,6 +606,7 @@ impl SoftBody {
             &self.settings.cg,
             &mut self.scratch,
         );
+        self.x_start.copy_from_slice(&self.x);
         for i in 0..self.x.len() {
             self.v[i] += self.accel[i] * h;
             self.x[i] += self.v[i] * h;

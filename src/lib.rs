@@ -5,7 +5,7 @@
 //! The crate has two layers:
 //!
 //! - **The numerical core** — [`mesh`], [`material`], [`fem`], [`solver`],
-//!   [`body`] (and contacts). It has no Bevy types, works in `f64`, takes its
+//!   [`body`], [`contact`], [`scene`]. It has no Bevy types, works in `f64`, takes its
 //!   scratch memory explicitly and allocates nothing inside per-step loops. It
 //!   can be used and tested on its own.
 //! - **The Bevy plugin** — a thin ECS layer over the core.
@@ -33,17 +33,24 @@
 //! ```
 
 pub mod body;
+pub mod contact;
 pub mod error;
 pub mod fem;
 pub mod material;
 pub mod math;
 pub mod mesh;
+pub mod scene;
 pub mod solver;
 
 /// The most used items.
 pub mod prelude {
     pub use crate::body::{BodySettings, NodeConstraint, SoftBody, StepReport, StepTimings};
+    pub use crate::contact::{
+        ComplianceMode, Contact, ContactReport, ContactSettings, ContactSolver, LcpSettings, Pose, Tool,
+        ToolShape,
+    };
     pub use crate::error::{Result, SoftTissueError};
+    pub use crate::scene::Scene;
     pub use crate::fem::RotationMethod;
     pub use crate::material::{Material, RayleighDamping, StiffnessField, Transition};
     pub use crate::math::{Mat3, Vec3, v3};

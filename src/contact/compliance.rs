@@ -1,0 +1,537 @@
+//! Contact compliance `W = h² H A⁻¹ Hᵀ` per body, and the matching correction.
+//!
+//! ## `Factorized` (the default)
+//! With the body's factor `A ≈ Q Pᵀ L D Lᵀ P Qᵀ` (Q the rotation warp since
+//! the factor was made, P the fill-reducing permutation) and `J = H Q`:
+//!
+//! ```text
+//! W = h² J (LDLᵀ)⁻¹ Jᵀ = h² Yᵀ D⁻¹ Y,   Y = L⁻¹ P Jᵀ = Σ_k Z_k (J_k)ᵀ,   Z_k = L⁻¹ P E_k
+//! ```
+//!
+//! `Z_k` are the three unit columns of contact node `k` after one forward
+//! solve. Their nonzeros lie on the elimination-tree path of `k` to the root,
+//! so the solve touches only that path (3×3 node supernodes). `Z_k` depends
+//! only on the factor — not on normals, tangents or rotations — so columns and
+//! their Gram blocks `G_kl = Z_kᵀ D⁻¹ Z_l` are cached until the factor changes
+//! (the paths of `k` and `l` share their common suffix above the lowest common
+//! ancestor, the only place `G_kl` sums over). Per step only new nodes are
+//! solved and the small 3×3 blocks are contracted with `J`:
+//! `W_rs = h² Σ_kl j_rkᵀ G_kl j_sl`.
+//!
+//! The correction `Δx = h² Q Pᵀ L⁻ᵀ D⁻¹ (Y λ)` needs one backward solve. Using the
+//! same factor for `W` and the correction keeps them consistent: the
+//! displacement the LCP predicted is exactly the one applied, so contacts end
+//! the step without penetration. Re-solving the correction with CG on the exact
+//! `A` would move the nodes slightly differently from what `W` assumed, and
+//! reopen penetrations of that size; the factor's error is the small error of the
+//! preconditioner itself.
+//!
+//! ## Other modes
+//! - `Exact`: the same with a fresh factorization of the current `A` (Q = I).
+//! - `DenseRows`: the paper's CPU method — two full triangular solves per
+//!   row of `J`. Same `W` as `Factorized`; kept as the benchmark baseline.
+//! - `Diagonal`: uncoupled, `W` from the 3×3 diagonal blocks of `A` only.
+//! - `RestPrecomputed`: the dense inverse of the first `A` (at rest),
+//!   rotated by the node rotations (the paper's reference [11]). Refused above
+//!   [`REST_PRECOMPUTED_MAX_NODES`] nodes.
+
+use std::collections::HashMap;
+use std::sync::Arc;
+
+use nalgebra::DMatrix;
+
+use crate::body::SoftBody;
+use crate::error::{Result, SoftTissueError};
+use crate::math::{Mat3, Vec3};
+use crate::solver::ldlt::{LdltFactor, LdltSymbolic};
+
+/// Largest body (in nodes) accepted by [`ComplianceMode::RestPrecomputed`].
+pub const REST_PRECOMPUTED_MAX_NODES: usize = 2000;
+
+/// How the contact compliance of a body is computed (see the module docs).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum ComplianceMode {
+    /// From the body's preconditioner factor, warped (reach-restricted forward solves).
+    #[default]
+    Factorized,
+    /// From a fresh factorization of the current matrix.
+    Exact,
+    /// Uncoupled: diagonal blocks of the current matrix only.
+    Diagonal,
+    /// Dense inverse of the matrix at rest, rotated (small meshes only).
+    RestPrecomputed,
+    /// The paper's CPU method: two full solves per Jacobian row (benchmark baseline).
+    DenseRows,
+}
+
+/// One nonzero 3-vector of the contact Jacobian.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct JacEntry {
+    /// Node of the body.
+    pub node: u32,
+    /// Constraint row.
+    pub row: u32,
+    /// `H` block (world frame): the row's direction times the node's weight and sign.
+    pub h: Vec3,
+    /// `Qᵀ h`, in the frame of the factor.
+    pub j: Vec3,
+}
+
+#[derive(Debug, Clone, Copy)]
+struct Column {
+    start: usize,
+    len: usize,
+}
+
+/// Cached node columns `Z_k` and Gram blocks of one factor version.
+#[derive(Debug, Default)]
+struct ColumnCache {
+    version: u64,
+    col_of_node: Vec<u32>,
+    cols: Vec<Column>,
+    paths: Vec<usize>,
+    blocks: Vec<Mat3>,
+    pairs: HashMap<(u32, u32), Mat3>,
+    work: Vec<Mat3>,
+    solves: usize,
+    gram_blocks: usize,
+}
+
+/// Reusable vectors.
+#[derive(Debug, Default)]
+struct Scratch {
+    a: Vec<Vec3>,
+    b: Vec<Vec3>,
+    c: Vec<Vec3>,
+    groups: Vec<(usize, usize)>,
+    by_row: Vec<u32>,
+    cols: Vec<u32>,
+}
+
+/// Per-body compliance state, kept between steps.
+#[derive(Debug, Default)]
+pub struct BodyCompliance {
+    cache: ColumnCache,
+    own: Option<LdltFactor>,
+    own_symbolic: Option<Arc<LdltSymbolic>>,
+    own_version: u64,
+    rest_inverse: Option<DMatrix<f64>>,
+    scratch: Scratch,
+}
+
+fn group(entries: &[JacEntry], groups: &mut Vec<(usize, usize)>) {
+    groups.clear();
+    let mut s = 0;
+    for i in 1..=entries.len() {
+        if i == entries.len() || entries[i].node != entries[s].node {
+            groups.push((s, i));
+            s = i;
+        }
+    }
+}
+
+impl ColumnCache {
+    fn reset(&mut self, n: usize, version: u64) {
+        if self.col_of_node.len() != n {
+            self.col_of_node = vec![u32::MAX; n];
+            self.work = vec![Mat3::zeros(); n];
+        } else {
+            self.col_of_node.fill(u32::MAX);
+        }
+        self.cols.clear();
+        self.paths.clear();
+        self.blocks.clear();
+        self.pairs.clear();
+        self.version = version;
+    }
+
+    fn column(&mut self, f: &LdltFactor, node: usize) -> u32 {
+        let c = self.col_of_node[node];
+        if c != u32::MAX {
+            return c;
+        }
+        let start = self.paths.len();
+        f.node_forward_solve(node, &mut self.work, &mut self.paths, &mut self.blocks);
+        let id = self.cols.len() as u32;
+        self.cols.push(Column {
+            start,
+            len: self.paths.len() - start,
+        });
+        self.col_of_node[node] = id;
+        self.solves += 1;
+        id
+    }
+
+    fn gram(&mut self, f: &LdltFactor, a: u32, b: u32) -> Mat3 {
+        let key = (a.min(b), a.max(b));
+        if let Some(g) = self.pairs.get(&key) {
+            return if a <= b { *g } else { g.transpose() };
+        }
+        let (ca, cb) = (self.cols[key.0 as usize], self.cols[key.1 as usize]);
+        let pa = &self.paths[ca.start..ca.start + ca.len];
+        let pb = &self.paths[cb.start..cb.start + cb.len];
+        let (mut i, mut j) = (0, 0);
+        while i < pa.len() && j < pb.len() && pa[i] != pb[j] {
+            if pa[i] < pb[j] {
+                i += 1;
+            } else {
+                j += 1;
+            }
+        }
+        let mut g = Mat3::zeros();
+        while i < pa.len() && j < pb.len() {
+            let node = pa[i];
+            let za = &self.blocks[ca.start + i];
+            let zb = &self.blocks[cb.start + j];
+            let d = f.d[node];
+            let mut scaled = *zb;
+            for r in 0..3 {
+                let inv = 1.0 / d[r];
+                for c in 0..3 {
+                    scaled[(r, c)] *= inv;
+                }
+            }
+            g += za.transpose() * scaled;
+            i += 1;
+            j += 1;
+        }
+        self.pairs.insert(key, g);
+        self.gram_blocks += 1;
+        if a <= b { g } else { g.transpose() }
+    }
+}
+
+impl BodyCompliance {
+    /// Fresh state.
+    pub fn new() -> Self {
+        Self {
+            cache: ColumnCache {
+                version: u64::MAX,
+                ..Default::default()
+            },
+            ..Default::default()
+        }
+    }
+
+    /// Forward solves (node columns, or full solves for `DenseRows`) in the last build.
+    pub fn solves(&self) -> usize {
+        self.cache.solves
+    }
+
+    /// Gram blocks computed (not found in the cache) in the last build.
+    pub fn gram_blocks(&self) -> usize {
+        self.cache.gram_blocks
+    }
+
+    fn refactor_own(&mut self, body: &SoftBody) -> Result<()> {
+        let sym = match (&self.own_symbolic, body.preconditioner().symbolic()) {
+            (Some(s), _) => Arc::clone(s),
+            (None, Some(s)) => Arc::clone(s),
+            (None, None) => Arc::new(LdltSymbolic::new(&body.system_matrix().pattern)?),
+        };
+        self.own_symbolic = Some(Arc::clone(&sym));
+        let mut f = match self.own.take() {
+            Some(f) if Arc::ptr_eq(&f.symbolic, &sym) => f,
+            _ => sym.alloc_factor(),
+        };
+        let mut work = std::mem::take(&mut self.cache.work);
+        let res = sym.factorize(body.system_matrix(), &mut f, &mut work);
+        work.clear();
+        work.resize(sym.n, Mat3::zeros());
+        self.cache.work = work;
+        res?;
+        self.own_version = self.own_version.wrapping_add(1);
+        self.own = Some(f);
+        Ok(())
+    }
+
+    /// Adds this body's contribution to `w` (`m × m`, row-major).
+    /// `entries` must be sorted by node; their `j` is filled here.
+    pub fn accumulate(
+        &mut self,
+        body: &SoftBody,
+        mode: ComplianceMode,
+        h: f64,
+        entries: &mut [JacEntry],
+        w: &mut [f64],
+        m: usize,
+    ) -> Result<()> {
+        self.cache.solves = 0;
+        self.cache.gram_blocks = 0;
+        if entries.is_empty() {
+            return Ok(());
+        }
+        group(entries, &mut self.scratch.groups);
+        let h2 = h * h;
+        match mode {
+            ComplianceMode::Diagonal => {
+                for &(s, e) in &self.scratch.groups {
+                    let k = entries[s].node as usize;
+                    let inv = body
+                        .system_matrix()
+                        .diag(k)
+                        .try_inverse()
+                        .ok_or(SoftTissueError::NotPositiveDefinite { node: k, pivot: 0.0 })?;
+                    for a in s..e {
+                        for b in s..e {
+                            w[entries[a].row as usize * m + entries[b].row as usize] +=
+                                h2 * entries[a].h.dot(&(inv * entries[b].h));
+                        }
+                    }
+                }
+            }
+            ComplianceMode::RestPrecomputed => {
+                let n = body.num_nodes();
+                if n > REST_PRECOMPUTED_MAX_NODES {
+                    return Err(SoftTissueError::TooLarge {
+                        what: "RestPrecomputed compliance (dense 3n×3n inverse)",
+                        size: n,
+                        limit: REST_PRECOMPUTED_MAX_NODES,
+                    });
+                }
+                if self.rest_inverse.is_none() {
+                    self.rest_inverse = Some(self.dense_inverse(body)?);
+                }
+                let rot = body.node_rotations();
+                for e in entries.iter_mut() {
+                    e.j = rot[e.node as usize].transpose() * e.h;
+                }
+                let inv = self
+                    .rest_inverse
+                    .as_ref()
+                    .ok_or(SoftTissueError::NonFinite("rest inverse"))?;
+                for a in entries.iter() {
+                    for b in entries.iter() {
+                        let blk = inv.fixed_view::<3, 3>(3 * a.node as usize, 3 * b.node as usize);
+                        w[a.row as usize * m + b.row as usize] += h2 * a.j.dot(&(blk * b.j));
+                    }
+                }
+            }
+            ComplianceMode::Factorized | ComplianceMode::Exact | ComplianceMode::DenseRows => {
+                let use_own =
+                    mode == ComplianceMode::Exact || body.preconditioner().factor_state().is_none();
+                if use_own {
+                    self.refactor_own(body)?;
+                }
+                let (factor, version, warp): (&LdltFactor, u64, Option<&[Mat3]>) = if use_own {
+                    let f = self.own.as_ref().ok_or(SoftTissueError::NonFinite("factor"))?;
+                    (f, self.own_version | (1 << 63), None)
+                } else {
+                    let st = body
+                        .preconditioner()
+                        .factor_state()
+                        .ok_or(SoftTissueError::NonFinite("factor"))?;
+                    (&st.factor, st.version, st.warped.then_some(&st.warp[..]))
+                };
+                for e in entries.iter_mut() {
+                    e.j = match warp {
+                        Some(q) => q[e.node as usize].transpose() * e.h,
+                        None => e.h,
+                    };
+                }
+                if mode == ComplianceMode::DenseRows {
+                    dense_rows(&mut self.scratch, &mut self.cache, factor, h2, entries, w, m);
+                    return Ok(());
+                }
+                let cache = &mut self.cache;
+                if cache.version != version {
+                    cache.reset(body.num_nodes(), version);
+                }
+                let sc = &mut self.scratch;
+                sc.cols.clear();
+                for &(s, _) in &sc.groups {
+                    let c = cache.column(factor, entries[s].node as usize);
+                    sc.cols.push(c);
+                }
+                for gi in 0..sc.groups.len() {
+                    for gj in gi..sc.groups.len() {
+                        let g = cache.gram(factor, sc.cols[gi], sc.cols[gj]);
+                        let (si, ei) = sc.groups[gi];
+                        let (sj, ej) = sc.groups[gj];
+                        for a in si..ei {
+                            let ga = g.transpose() * entries[a].j;
+                            for b in sj..ej {
+                                let v = h2 * ga.dot(&entries[b].j);
+                                let (ra, rb) = (entries[a].row as usize, entries[b].row as usize);
+                                w[ra * m + rb] += v;
+                                if gi != gj {
+                                    w[rb * m + ra] += v;
+                                }
+                            }
+                        }
+                    }
+                }
+            }
+        }
+        Ok(())
+    }
+
+    fn dense_inverse(&mut self, body: &SoftBody) -> Result<DMatrix<f64>> {
+        let n = body.num_nodes();
+        self.refactor_own(body)?;
+        let f = self.own.as_ref().ok_or(SoftTissueError::NonFinite("factor"))?;
+        let mut inv = DMatrix::zeros(3 * n, 3 * n);
+        let mut b = vec![Vec3::zeros(); n];
+        let mut x = vec![Vec3::zeros(); n];
+        let mut t = vec![Vec3::zeros(); n];
+        for k in 0..n {
+            for c in 0..3 {
+                b[k][c] = 1.0;
+                f.solve(&b, &mut x, &mut t);
+                b[k][c] = 0.0;
+                for (i, xi) in x.iter().enumerate() {
+                    for r in 0..3 {
+                        inv[(3 * i + r, 3 * k + c)] = xi[r];
+                    }
+                }
+            }
+        }
+        Ok(inv)
+    }
+
+    /// Position correction `dx = h² A⁻¹ Hᵀ λ` of this body, with the same approximation
+    /// of `A⁻¹` that [`Self::accumulate`] used this step. `entries` as passed there.
+    pub fn correction(
+        &mut self,
+        body: &SoftBody,
+        mode: ComplianceMode,
+        h: f64,
+        entries: &[JacEntry],
+        lambda: &[f64],
+        dx: &mut Vec<Vec3>,
+    ) -> Result<()> {
+        let n = body.num_nodes();
+        dx.clear();
+        dx.resize(n, Vec3::zeros());
+        if entries.is_empty() {
+            return Ok(());
+        }
+        let h2 = h * h;
+        let sc = &mut self.scratch;
+        match mode {
+            ComplianceMode::Diagonal => {
+                for e in entries {
+                    let k = e.node as usize;
+                    let inv = body.system_matrix().diag(k).try_inverse().unwrap_or_else(Mat3::zeros);
+                    dx[k] += inv * e.h * (h2 * lambda[e.row as usize]);
+                }
+            }
+            ComplianceMode::RestPrecomputed => {
+                let inv = self
+                    .rest_inverse
+                    .as_ref()
+                    .ok_or(SoftTissueError::NonFinite("rest inverse"))?;
+                sc.a.clear();
+                sc.a.resize(n, Vec3::zeros());
+                for e in entries {
+                    sc.a[e.node as usize] += e.j * lambda[e.row as usize];
+                }
+                let rot = body.node_rotations();
+                group(entries, &mut sc.groups);
+                for i in 0..n {
+                    let mut acc = Vec3::zeros();
+                    for &(s, _) in &sc.groups {
+                        let k = entries[s].node as usize;
+                        acc += inv.fixed_view::<3, 3>(3 * i, 3 * k) * sc.a[k];
+                    }
+                    dx[i] = rot[i] * acc * h2;
+                }
+            }
+            _ => {
+                let use_own =
+                    mode == ComplianceMode::Exact || body.preconditioner().factor_state().is_none();
+                let (f, warp): (&LdltFactor, Option<&[Mat3]>) = if use_own {
+                    (self.own.as_ref().ok_or(SoftTissueError::NonFinite("factor"))?, None)
+                } else {
+                    let st = body
+                        .preconditioner()
+                        .factor_state()
+                        .ok_or(SoftTissueError::NonFinite("factor"))?;
+                    (&st.factor, st.warped.then_some(&st.warp[..]))
+                };
+                let sym = &*f.symbolic;
+                sc.a.clear();
+                sc.a.resize(n, Vec3::zeros());
+                let y = &mut sc.a;
+                let cache = &self.cache;
+                if mode == ComplianceMode::Factorized && cache.version != u64::MAX {
+                    // Y λ from the cached node columns (their paths only).
+                    let mut s = 0;
+                    while s < entries.len() {
+                        let k = entries[s].node as usize;
+                        let mut c = Vec3::zeros();
+                        let mut e = s;
+                        while e < entries.len() && entries[e].node as usize == k {
+                            c += entries[e].j * lambda[entries[e].row as usize];
+                            e += 1;
+                        }
+                        let col = cache.col_of_node[k];
+                        if col == u32::MAX {
+                            return Err(SoftTissueError::NonFinite("missing node column"));
+                        }
+                        let cl = cache.cols[col as usize];
+                        for t in 0..cl.len {
+                            y[cache.paths[cl.start + t]] += cache.blocks[cl.start + t] * c;
+                        }
+                        s = e;
+                    }
+                } else {
+                    // Full forward solve of P Jᵀ λ.
+                    for e in entries {
+                        y[sym.iperm[e.node as usize]] += e.j * lambda[e.row as usize];
+                    }
+                    f.forward(y);
+                }
+                for k in 0..n {
+                    y[k] = y[k].component_div(&f.d[k]);
+                }
+                f.backward(y);
+                for k in 0..n {
+                    let old = sym.perm[k];
+                    let v = y[k] * h2;
+                    dx[old] = match warp {
+                        Some(q) => q[old] * v,
+                        None => v,
+                    };
+                }
+            }
+        }
+        Ok(())
+    }
+}
+
+/// The paper's CPU method: for every row of `J`, two full triangular solves.
+fn dense_rows(
+    sc: &mut Scratch,
+    cache: &mut ColumnCache,
+    f: &LdltFactor,
+    h2: f64,
+    entries: &[JacEntry],
+    w: &mut [f64],
+    m: usize,
+) {
+    let n = f.symbolic.n;
+    sc.a.resize(n, Vec3::zeros());
+    sc.b.resize(n, Vec3::zeros());
+    sc.c.resize(n, Vec3::zeros());
+    sc.by_row.clear();
+    sc.by_row.extend(0..entries.len() as u32);
+    sc.by_row.sort_unstable_by_key(|&i| entries[i as usize].row);
+    let mut s = 0;
+    while s < sc.by_row.len() {
+        let row = entries[sc.by_row[s] as usize].row;
+        let mut e = s;
+        sc.a.fill(Vec3::zeros());
+        while e < sc.by_row.len() && entries[sc.by_row[e] as usize].row == row {
+            let en = &entries[sc.by_row[e] as usize];
+            sc.a[en.node as usize] += en.j;
+            e += 1;
+        }
+        f.solve(&sc.a, &mut sc.b, &mut sc.c);
+        for en in entries {
+            w[en.row as usize * m + row as usize] += h2 * en.j.dot(&sc.b[en.node as usize]);
+        }
+        cache.solves += 2;
+        s = e;
+    }
+}

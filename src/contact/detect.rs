@@ -1,0 +1,190 @@
+//! Collision detection: surface vertices against tools and against other bodies.
+//!
+//! - **Tool – body**: every surface vertex inside the tool's bounds (grown
+//!   by the alarm distance) is projected into the tool frame (parry3d-f64);
+//!   a signed distance below the alarm distance makes a contact with the
+//!   tool's outward normal.
+//! - **Body – body**: the surface vertices of one body against the surface
+//!   triangles of the other, in both directions. Each body keeps a bounding
+//!   volume hierarchy of its surface triangles, built once and refitted every
+//!   step. The closest triangle gives barycentric weights, the normal is the
+//!   triangle's outward normal.
+//!
+//! Self-collision is out of scope.
+
+use crate::math::Vec3;
+
+/// A node of [`TriangleBvh`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct BvhNode {
+    min: Vec3,
+    max: Vec3,
+    /// Children for inner nodes; `(start, count)` into `order` for leaves.
+    a: u32,
+    b: u32,
+    leaf: bool,
+}
+
+/// Bounding volume hierarchy over surface triangles; the tree is built once,
+/// boxes are refitted from current positions.
+#[derive(Debug, Clone, Default)]
+pub struct TriangleBvh {
+    nodes: Vec<BvhNode>,
+    order: Vec<u32>,
+    stack: Vec<u32>,
+}
+
+const LEAF: usize = 4;
+
+impl TriangleBvh {
+    /// Builds the tree over `tris` (volume-vertex indices) at positions `x`.
+    pub fn new(tris: &[[usize; 3]], x: &[Vec3]) -> Self {
+        let mut bvh = Self {
+            order: (0..tris.len() as u32).collect(),
+            ..Default::default()
+        };
+        if !tris.is_empty() {
+            let centroids: Vec<Vec3> = tris
+                .iter()
+                .map(|t| (x[t[0]] + x[t[1]] + x[t[2]]) / 3.0)
+                .collect();
+            let n = tris.len();
+            bvh.build(&centroids, 0, n);
+            bvh.refit(tris, x);
+        }
+        bvh
+    }
+
+    fn build(&mut self, c: &[Vec3], start: usize, end: usize) -> u32 {
+        let id = self.nodes.len() as u32;
+        self.nodes.push(BvhNode {
+            min: Vec3::zeros(),
+            max: Vec3::zeros(),
+            a: start as u32,
+            b: (end - start) as u32,
+            leaf: true,
+        });
+        if end - start > LEAF {
+            let mut lo = Vec3::repeat(f64::INFINITY);
+            let mut hi = Vec3::repeat(f64::NEG_INFINITY);
+            for &t in &self.order[start..end] {
+                lo = lo.inf(&c[t as usize]);
+                hi = hi.sup(&c[t as usize]);
+            }
+            let axis = (hi - lo).imax();
+            let mid = (start + end) / 2;
+            self.order[start..end].select_nth_unstable_by(mid - start, |&p, &q| {
+                c[p as usize][axis].total_cmp(&c[q as usize][axis])
+            });
+            let left = self.build(c, start, mid);
+            let right = self.build(c, mid, end);
+            self.nodes[id as usize] = BvhNode {
+                min: Vec3::zeros(),
+                max: Vec3::zeros(),
+                a: left,
+                b: right,
+                leaf: false,
+            };
+        }
+        id
+    }
+
+    /// Recomputes every box from positions `x` (children before parents).
+    pub fn refit(&mut self, tris: &[[usize; 3]], x: &[Vec3]) {
+        for i in (0..self.nodes.len()).rev() {
+            let n = self.nodes[i];
+            let (mut lo, mut hi) = (Vec3::repeat(f64::INFINITY), Vec3::repeat(f64::NEG_INFINITY));
+            if n.leaf {
+                for &t in &self.order[n.a as usize..(n.a + n.b) as usize] {
+                    for &v in &tris[t as usize] {
+                        lo = lo.inf(&x[v]);
+                        hi = hi.sup(&x[v]);
+                    }
+                }
+            } else {
+                let (l, r) = (self.nodes[n.a as usize], self.nodes[n.b as usize]);
+                lo = l.min.inf(&r.min);
+                hi = l.max.sup(&r.max);
+            }
+            self.nodes[i].min = lo;
+            self.nodes[i].max = hi;
+        }
+    }
+
+    /// Bounds of the whole tree.
+    pub fn bounds(&self) -> Option<(Vec3, Vec3)> {
+        self.nodes.first().map(|n| (n.min, n.max))
+    }
+
+    /// Calls `f(triangle)` for every triangle whose box is within `radius` of `p`.
+    pub fn query(&mut self, p: &Vec3, radius: f64, mut f: impl FnMut(usize)) {
+        if self.nodes.is_empty() {
+            return;
+        }
+        self.stack.clear();
+        self.stack.push(0);
+        while let Some(i) = self.stack.pop() {
+            let n = self.nodes[i as usize];
+            let outside = (0..3).any(|k| p[k] < n.min[k] - radius || p[k] > n.max[k] + radius);
+            if outside {
+                continue;
+            }
+            if n.leaf {
+                for &t in &self.order[n.a as usize..(n.a + n.b) as usize] {
+                    f(t as usize);
+                }
+            } else {
+                self.stack.push(n.a);
+                self.stack.push(n.b);
+            }
+        }
+    }
+}
+
+/// Closest point on triangle `(a, b, c)` to `p`, as barycentric weights.
+pub fn closest_point_on_triangle(p: &Vec3, a: &Vec3, b: &Vec3, c: &Vec3) -> [f64; 3] {
+    let ab = b - a;
+    let ac = c - a;
+    let ap = p - a;
+    let d1 = ab.dot(&ap);
+    let d2 = ac.dot(&ap);
+    if d1 <= 0.0 && d2 <= 0.0 {
+        return [1.0, 0.0, 0.0];
+    }
+    let bp = p - b;
+    let d3 = ab.dot(&bp);
+    let d4 = ac.dot(&bp);
+    if d3 >= 0.0 && d4 <= d3 {
+        return [0.0, 1.0, 0.0];
+    }
+    let vc = d1 * d4 - d3 * d2;
+    if vc <= 0.0 && d1 >= 0.0 && d3 <= 0.0 {
+        let v = d1 / (d1 - d3);
+        return [1.0 - v, v, 0.0];
+    }
+    let cp = p - c;
+    let d5 = ab.dot(&cp);
+    let d6 = ac.dot(&cp);
+    if d6 >= 0.0 && d5 <= d6 {
+        return [0.0, 0.0, 1.0];
+    }
+    let vb = d5 * d2 - d1 * d6;
+    if vb <= 0.0 && d2 >= 0.0 && d6 <= 0.0 {
+        let w = d2 / (d2 - d6);
+        return [1.0 - w, 0.0, w];
+    }
+    let va = d3 * d6 - d5 * d4;
+    if va <= 0.0 && (d4 - d3) >= 0.0 && (d5 - d6) >= 0.0 {
+        let w = (d4 - d3) / ((d4 - d3) + (d5 - d6));
+        return [0.0, 1.0 - w, w];
+    }
+    let denom = 1.0 / (va + vb + vc);
+    let v = vb * denom;
+    let w = vc * denom;
+    [1.0 - v - w, v, w]
+}
+
+/// Whether two boxes overlap after growing by `margin`.
+pub fn boxes_overlap(a: &(Vec3, Vec3), b: &(Vec3, Vec3), margin: f64) -> bool {
+    (0..3).all(|k| a.0[k] - margin <= b.1[k] && b.0[k] - margin <= a.1[k])
+}

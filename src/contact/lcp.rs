@@ -1,0 +1,163 @@
+//! Projected Gauss–Seidel for the Signorini LCP with Coulomb friction.
+//!
+//! Unknowns per contact: the normal force `λ_n ≥ 0` and, when `μ > 0`, the
+//! tangential force `λ_t ∈ ℝ²`. With `δ = W λ + δ₀`:
+//!
+//! - normal: `0 ≤ δ_n ⊥ λ_n ≥ 0`;
+//! - friction (**circular cone**, not a pyramid): `‖λ_t‖ ≤ μ λ_n`; sticking
+//!   (`δ_t = 0`) inside the cone, sliding with `λ_t = −μ λ_n δ_t/‖δ_t‖` on it.
+//!
+//! Each sweep updates contacts in order: the normal row by a projected
+//! step on its diagonal, then the two tangential rows by solving their 2×2
+//! block; when that solution leaves the disc of radius `μ λ_n`, an isotropic
+//! projected step (step `1/λ_max(W_tt)`) is taken instead, so that a sliding
+//! contact converges to `λ_t` anti-parallel to `δ_t`. An
+//! over-relaxation factor `ω ∈ (0, 2)` scales each update. The solve warm
+//! starts from the previous step's forces and stops when the largest force
+//! change in a sweep drops below `tolerance` times the largest force.
+
+/// Settings of the projected Gauss–Seidel solver.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LcpSettings {
+    /// Maximum sweeps.
+    pub max_iterations: usize,
+    /// Relative force change that ends the sweeps.
+    pub tolerance: f64,
+    /// Over-relaxation factor ω in (0, 2); 1 is plain Gauss–Seidel.
+    pub over_relaxation: f64,
+    /// Start from the previous step's forces of persisting contacts.
+    pub warm_start: bool,
+}
+
+impl Default for LcpSettings {
+    fn default() -> Self {
+        Self {
+            max_iterations: 500,
+            tolerance: 1e-8,
+            over_relaxation: 1.0,
+            warm_start: true,
+        }
+    }
+}
+
+/// Outcome of an LCP solve.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct LcpReport {
+    /// Sweeps run.
+    pub iterations: usize,
+    /// Largest normal complementarity residual `|min(δ_n, W_nn λ_n)|` (metres).
+    pub complementarity: f64,
+    /// Largest friction residual (metres): `‖δ_t‖` when sticking, the part of
+    /// `δ_t` not opposed to `λ_t` when sliding, plus any cone violation scaled by `W_tt`.
+    pub friction: f64,
+    /// Largest predicted penetration `max(−δ_n, 0)` (metres).
+    pub penetration: f64,
+}
+
+/// Solves the LCP in place. `w` is the dense `m × m` matrix (row-major),
+/// `rows[c]..rows[c+1]` the rows of contact `c` (1 or 3), `mu[c]` its friction.
+pub fn solve(
+    w: &[f64],
+    delta0: &[f64],
+    rows: &[usize],
+    mu: &[f64],
+    lambda: &mut [f64],
+    settings: &LcpSettings,
+) -> LcpReport {
+    let m = delta0.len();
+    let nc = rows.len().saturating_sub(1);
+    let omega = settings.over_relaxation;
+    let row_dot = |r: usize, lambda: &[f64]| -> f64 {
+        let wr = &w[r * m..(r + 1) * m];
+        delta0[r] + wr.iter().zip(lambda).map(|(a, b)| a * b).sum::<f64>()
+    };
+    let mut report = LcpReport::default();
+    for it in 0..settings.max_iterations {
+        let mut max_change: f64 = 0.0;
+        let mut max_force: f64 = 0.0;
+        for c in 0..nc {
+            let r = rows[c];
+            let wnn = w[r * m + r];
+            if wnn <= 0.0 {
+                continue;
+            }
+            let old_n = lambda[r];
+            let dn = row_dot(r, lambda);
+            let mut ln = (old_n - omega * dn / wnn).max(0.0);
+            if !ln.is_finite() {
+                ln = 0.0;
+            }
+            lambda[r] = ln;
+            max_change = max_change.max((ln - old_n).abs());
+            max_force = max_force.max(ln);
+            if rows[c + 1] - r == 3 {
+                let (t1, t2) = (r + 1, r + 2);
+                let (old1, old2) = (lambda[t1], lambda[t2]);
+                let d1 = row_dot(t1, lambda);
+                let d2 = row_dot(t2, lambda);
+                let (a, b, d) = (w[t1 * m + t1], w[t1 * m + t2], w[t2 * m + t2]);
+                let det = a * d - b * b;
+                let (mut l1, mut l2) = if det > 1e-300 * (a * d).abs().max(1e-300) {
+                    (
+                        old1 - omega * (d * d1 - b * d2) / det,
+                        old2 - omega * (a * d2 - b * d1) / det,
+                    )
+                } else {
+                    (0.0, 0.0)
+                };
+                let limit = mu[c] * ln;
+                if (l1 * l1 + l2 * l2).sqrt() > limit {
+                    // Sliding: an isotropic projected step, whose fixed point has δ_t
+                    // anti-parallel to λ_t (maximal dissipation) whatever W_tt's shape.
+                    let wmax = 0.5 * (a + d) + (0.25 * (a - d) * (a - d) + b * b).sqrt();
+                    l1 = old1 - omega * d1 / wmax;
+                    l2 = old2 - omega * d2 / wmax;
+                    let norm = (l1 * l1 + l2 * l2).sqrt();
+                    if norm > limit {
+                        let s = if norm > 0.0 { limit / norm } else { 0.0 };
+                        l1 *= s;
+                        l2 *= s;
+                    }
+                }
+                if !(l1.is_finite() && l2.is_finite()) {
+                    l1 = 0.0;
+                    l2 = 0.0;
+                }
+                lambda[t1] = l1;
+                lambda[t2] = l2;
+                max_change = max_change.max((l1 - old1).abs()).max((l2 - old2).abs());
+                max_force = max_force.max(l1.abs()).max(l2.abs());
+            }
+        }
+        report.iterations = it + 1;
+        if max_change <= settings.tolerance * max_force.max(1e-300) {
+            break;
+        }
+    }
+    // Residuals of the final iterate.
+    for c in 0..nc {
+        let r = rows[c];
+        let dn = row_dot(r, lambda);
+        let wnn = w[r * m + r].max(0.0);
+        report.complementarity = report.complementarity.max(dn.min(wnn * lambda[r]).abs());
+        report.penetration = report.penetration.max(-dn);
+        if rows[c + 1] - r == 3 {
+            let d = [row_dot(r + 1, lambda), row_dot(r + 2, lambda)];
+            let l = [lambda[r + 1], lambda[r + 2]];
+            let dnorm = (d[0] * d[0] + d[1] * d[1]).sqrt();
+            let lnorm = (l[0] * l[0] + l[1] * l[1]).sqrt();
+            let limit = mu[c] * lambda[r];
+            let wtt = w[(r + 1) * m + r + 1].max(w[(r + 2) * m + r + 2]);
+            let res = if lnorm < limit * (1.0 - 1e-9) || limit == 0.0 {
+                if limit == 0.0 { 0.0 } else { dnorm }
+            } else {
+                // Sliding: δ_t must be anti-parallel to λ_t.
+                let along = -(d[0] * l[0] + d[1] * l[1]) / lnorm;
+                (dnorm * dnorm - along * along).max(0.0).sqrt() + (-along).max(0.0)
+            };
+            let cone = (lnorm - limit).max(0.0) * wtt;
+            report.friction = report.friction.max(res + cone);
+        }
+    }
+    report
+}

@@ -1,0 +1,659 @@
+//! Contact response: detection, compliance, friction LCP and correction.
+//!
+//! This is the paper's section 4. After every body has moved freely
+//! ([`SoftBody::solve_free_motion`]), [`ContactSolver`] runs four phases:
+//!
+//! 1. **Detect** ([`ContactSolver::detect`], [`detect`]): surface vertices
+//!    against rigid [`Tool`]s (parry3d-f64) and against the surface triangles of
+//!    other bodies (refitted BVH, both directions). Each contact has a normal,
+//!    two tangents and a gap `δ₀` measured at the free-motion positions.
+//!    Self-collision is out of scope.
+//! 2. **Compliance** ([`ContactSolver::build_compliance`]): the constraint
+//!    Jacobian `H` — one normal row per contact, plus two tangent rows when
+//!    `μ > 0` — and the Delassus matrix `W = Σ_bodies h² H A⁻¹ Hᵀ`, computed per
+//!    body with the body's [`ComplianceMode`] (see [`compliance`]).
+//!    Deformable–deformable contacts sum both bodies' contributions.
+//! 3. **LCP** ([`ContactSolver::solve_lcp`]): projected Gauss–Seidel with a
+//!    circular Coulomb cone ([`lcp`]), warm-started from the previous step.
+//! 4. **Correct** ([`ContactSolver::correct`]): `Δx = h² A⁻¹ Hᵀ λ` with the
+//!    same approximation of `A⁻¹` as `W`, `Δv = Δx / h`, and the reaction force and
+//!    torque on each tool.
+//!
+//! A scene without tools or touching bodies does no detection work, one
+//! without contacts no compliance or LCP work, and `μ = 0` adds no friction rows.
+
+pub mod compliance;
+pub mod detect;
+pub mod lcp;
+pub mod tool;
+
+use std::collections::HashMap;
+use std::time::Instant;
+
+use crate::body::{NodeConstraint, SoftBody};
+use crate::error::{Result, SoftTissueError, check_positive};
+use crate::math::Vec3;
+pub use compliance::{BodyCompliance, ComplianceMode, JacEntry};
+use detect::{TriangleBvh, boxes_overlap, closest_point_on_triangle};
+pub use lcp::{LcpReport, LcpSettings};
+pub use tool::{Pose, Tool, ToolShape};
+
+/// Scene-wide contact settings.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ContactSettings {
+    /// Default compliance mode (bodies may override it in their settings).
+    pub compliance: ComplianceMode,
+    /// Proximity (alarm) distance below which a contact is created, metres.
+    pub alarm_distance: f64,
+    /// Friction coefficient between deformable bodies.
+    pub body_friction: f64,
+    /// Gauss–Seidel settings.
+    pub lcp: LcpSettings,
+    /// Maximum contact passes per step. After the first correction, detection
+    /// runs again; while some vertex still penetrates deeper than
+    /// `penetration_tolerance` (a vertex the correction pushed into a tool, or the
+    /// curvature a linearized contact ignores), another frictionless pass corrects it.
+    pub max_passes: usize,
+    /// Penetration that triggers another pass, metres.
+    pub penetration_tolerance: f64,
+}
+
+impl Default for ContactSettings {
+    fn default() -> Self {
+        Self {
+            compliance: ComplianceMode::Factorized,
+            alarm_distance: 1e-4,
+            body_friction: 0.0,
+            lcp: LcpSettings::default(),
+            max_passes: 3,
+            penetration_tolerance: 1e-6,
+        }
+    }
+}
+
+impl ContactSettings {
+    /// Checks the parameters.
+    pub fn validate(&self) -> Result<()> {
+        check_positive("alarm_distance", self.alarm_distance)?;
+        crate::error::check_range("body_friction", self.body_friction, 0.0, 1e6)?;
+        check_positive("lcp.tolerance", self.lcp.tolerance)?;
+        if !(self.lcp.over_relaxation > 0.0 && self.lcp.over_relaxation < 2.0) {
+            return Err(SoftTissueError::InvalidParameter {
+                name: "lcp.over_relaxation",
+                value: self.lcp.over_relaxation,
+                reason: "must lie in (0, 2)",
+            });
+        }
+        check_positive("penetration_tolerance", self.penetration_tolerance)?;
+        if self.max_passes == 0 {
+            return Err(SoftTissueError::InvalidParameter {
+                name: "max_passes",
+                value: 0.0,
+                reason: "must be ≥ 1",
+            });
+        }
+        if self.lcp.max_iterations == 0 {
+            return Err(SoftTissueError::InvalidParameter {
+                name: "lcp.max_iterations",
+                value: 0.0,
+                reason: "must be ≥ 1",
+            });
+        }
+        Ok(())
+    }
+}
+
+/// One side of a contact on a deformable body: up to three weighted nodes.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ContactSide {
+    /// Index of the body in the slice given to the solver.
+    pub body: usize,
+    /// Nodes (volume indices).
+    pub nodes: [u32; 3],
+    /// Barycentric weights (unused slots are 0).
+    pub weights: [f64; 3],
+}
+
+/// What the other side of a contact is.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum ContactOther {
+    /// A rigid tool (index in the tool slice).
+    Tool(usize),
+    /// A surface triangle of another body.
+    Body(ContactSide),
+}
+
+/// A contact between a surface vertex and a tool or another body's surface.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Contact {
+    /// The vertex side (weight 1 on one node).
+    pub a: ContactSide,
+    /// The other side.
+    pub other: ContactOther,
+    /// Unit normal, pointing from the other side toward `a`.
+    pub normal: Vec3,
+    /// Unit tangents completing the frame.
+    pub tangents: [Vec3; 2],
+    /// Gap `δ₀` at free motion (negative when penetrating).
+    pub gap: f64,
+    /// Tangential relative displacement during the step at free motion.
+    pub slip: [f64; 2],
+    /// Friction coefficient.
+    pub mu: f64,
+    /// Contact point on the other side.
+    pub point: Vec3,
+    /// Solved force `(λ_n, λ_t1, λ_t2)` on side `a`, newtons.
+    pub force: Vec3,
+}
+
+/// Timings and counters of the contact phases of the last step. Counts
+/// (`contacts`, `rows`, `friction_contacts`) describe the first pass; timings and
+/// solves add up over all passes.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct ContactReport {
+    /// Active contacts.
+    pub contacts: usize,
+    /// Constraint rows.
+    pub rows: usize,
+    /// Contacts that have friction rows.
+    pub friction_contacts: usize,
+    /// LCP outcome.
+    pub lcp: LcpReport,
+    /// Forward (or full) solves done for `W`.
+    pub solves: usize,
+    /// Gram blocks computed (cache misses).
+    pub gram_blocks: usize,
+    /// Seconds in detection.
+    pub detect: f64,
+    /// Seconds building `H` and `W`.
+    pub compliance: f64,
+    /// Seconds in the LCP.
+    pub lcp_seconds: f64,
+    /// Seconds in the correction.
+    pub correct: f64,
+    /// Vertex–tool pairs tested in detection.
+    pub pairs_tested: usize,
+    /// Contact passes run (see [`ContactSettings::max_passes`]).
+    pub passes: usize,
+    /// Deepest penetration found by the last detection, metres (0 if none).
+    pub max_penetration: f64,
+}
+
+#[derive(Debug, Default)]
+struct BodySlot {
+    id: u64,
+    compliance: BodyCompliance,
+    bvh: Option<TriangleBvh>,
+    tris: Vec<[usize; 3]>,
+    entries: Vec<JacEntry>,
+    dx: Vec<Vec3>,
+    aabb: (Vec3, Vec3),
+    mode: ComplianceMode,
+}
+
+type ContactKey = (u64, u32, u64);
+
+/// The contact pipeline (see the module docs). Keep one per scene; it caches
+/// per-body data (BVHs, node columns, previous forces) between steps.
+#[derive(Debug, Default)]
+pub struct ContactSolver {
+    settings: ContactSettings,
+    slots: Vec<BodySlot>,
+    contacts: Vec<Contact>,
+    rows: Vec<usize>,
+    mu: Vec<f64>,
+    delta0: Vec<f64>,
+    w: Vec<f64>,
+    lambda: Vec<f64>,
+    previous: HashMap<ContactKey, [f64; 3]>,
+    report: ContactReport,
+    h: f64,
+    pass: usize,
+}
+
+fn tangents(n: &Vec3) -> [Vec3; 2] {
+    let e = if n.x.abs() < 0.6 {
+        Vec3::x()
+    } else if n.y.abs() < 0.6 {
+        Vec3::y()
+    } else {
+        Vec3::z()
+    };
+    let t1 = n.cross(&e).normalize();
+    [t1, n.cross(&t1)]
+}
+
+impl ContactSolver {
+    /// A solver with `settings`.
+    pub fn new(settings: ContactSettings) -> Result<Self> {
+        settings.validate()?;
+        Ok(Self {
+            settings,
+            ..Default::default()
+        })
+    }
+
+    /// Settings.
+    pub fn settings(&self) -> &ContactSettings {
+        &self.settings
+    }
+
+    /// Replaces the settings.
+    pub fn set_settings(&mut self, settings: ContactSettings) -> Result<()> {
+        settings.validate()?;
+        self.settings = settings;
+        Ok(())
+    }
+
+    /// Contacts of the last step (forces filled after the LCP).
+    pub fn contacts(&self) -> &[Contact] {
+        &self.contacts
+    }
+
+    /// Counters and timings of the last step.
+    pub fn report(&self) -> &ContactReport {
+        &self.report
+    }
+
+    /// The Delassus matrix `W` of the last step (row-major, `rows × rows`).
+    pub fn delassus(&self) -> (&[f64], usize) {
+        (&self.w, self.delta0.len())
+    }
+
+    /// Row offsets per contact: rows of contact `c` are `offsets[c]..offsets[c+1]`.
+    pub fn row_offsets(&self) -> &[usize] {
+        &self.rows
+    }
+
+    /// Jacobian entries of body slot `i` (valid after [`Self::build_compliance`]).
+    pub fn jacobian(&self, i: usize) -> &[JacEntry] {
+        self.slots.get(i).map(|s| &s.entries[..]).unwrap_or(&[])
+    }
+
+    /// Total contact force exerted on body `i` in the last step (`Σ Hᵀ λ`).
+    pub fn body_force(&self, i: usize) -> Vec3 {
+        self.jacobian(i)
+            .iter()
+            .map(|e| e.h * self.lambda[e.row as usize])
+            .sum()
+    }
+
+    fn prepare_slots(&mut self, bodies: &[&SoftBody]) {
+        self.slots.resize_with(bodies.len(), BodySlot::default);
+        for (slot, b) in self.slots.iter_mut().zip(bodies) {
+            if slot.id != b.id() {
+                *slot = BodySlot {
+                    id: b.id(),
+                    compliance: BodyCompliance::new(),
+                    tris: b.surface().volume_triangles().collect(),
+                    ..Default::default()
+                };
+            }
+            let mut lo = Vec3::repeat(f64::INFINITY);
+            let mut hi = Vec3::repeat(f64::NEG_INFINITY);
+            for &v in &b.surface().vertices {
+                lo = lo.inf(&b.positions()[v]);
+                hi = hi.sup(&b.positions()[v]);
+            }
+            slot.aabb = (lo, hi);
+        }
+    }
+
+    /// Phase 1: finds contacts at the bodies' free-motion positions.
+    pub fn detect(&mut self, bodies: &[&SoftBody], tools: &[&Tool], h: f64) -> Result<()> {
+        let t0 = Instant::now();
+        check_positive("h", h)?;
+        self.h = h;
+        self.contacts.clear();
+        if self.pass == 0 {
+            self.report = ContactReport::default();
+        } else {
+            self.report.pairs_tested = 0;
+        }
+        self.prepare_slots(bodies);
+        let margin = self.settings.alarm_distance;
+        for (bi, body) in bodies.iter().enumerate() {
+            let x = body.positions();
+            let x0 = body.start_positions();
+            let fixed = body.constraints();
+            for (ti, tool) in tools.iter().enumerate() {
+                let tb = tool.aabb(margin);
+                if !boxes_overlap(&self.slots[bi].aabb, &tb, 0.0) {
+                    continue;
+                }
+                for &v in &body.surface().vertices {
+                    let p = x[v];
+                    if fixed[v] != NodeConstraint::Free || !boxes_overlap(&(p, p), &tb, 0.0) {
+                        continue;
+                    }
+                    self.report.pairs_tested += 1;
+                    let Some(prox) = tool.proximity(&p, margin) else {
+                        continue;
+                    };
+                    if prox.distance >= margin {
+                        continue;
+                    }
+                    let t = tangents(&prox.normal);
+                    let rel = (p - x0[v]) - tool.displacement_at(&prox.point);
+                    self.contacts.push(Contact {
+                        a: ContactSide {
+                            body: bi,
+                            nodes: [v as u32, 0, 0],
+                            weights: [1.0, 0.0, 0.0],
+                        },
+                        other: ContactOther::Tool(ti),
+                        normal: prox.normal,
+                        tangents: t,
+                        gap: prox.distance,
+                        slip: [t[0].dot(&rel), t[1].dot(&rel)],
+                        mu: tool.friction(),
+                        point: prox.point,
+                        force: Vec3::zeros(),
+                    });
+                }
+            }
+        }
+        // Deformable against deformable, both directions.
+        for a in 0..bodies.len() {
+            for b in 0..bodies.len() {
+                if a == b || !boxes_overlap(&self.slots[a].aabb, &self.slots[b].aabb, margin) {
+                    continue;
+                }
+                let slot_b = &mut self.slots[b];
+                let bvh = slot_b
+                    .bvh
+                    .get_or_insert_with(|| TriangleBvh::new(&slot_b.tris, bodies[b].positions()));
+                bvh.refit(&slot_b.tris, bodies[b].positions());
+                self.vertex_triangle(bodies, a, b, margin);
+            }
+        }
+        if self.pass > 0 {
+            for c in &mut self.contacts {
+                c.mu = 0.0;
+                c.slip = [0.0; 2];
+            }
+        }
+        self.report.max_penetration = self.contacts.iter().map(|c| -c.gap).fold(0.0, f64::max);
+        if self.pass == 0 {
+            self.report.contacts = self.contacts.len();
+        }
+        self.report.detect += t0.elapsed().as_secs_f64();
+        Ok(())
+    }
+
+    fn vertex_triangle(&mut self, bodies: &[&SoftBody], a: usize, b: usize, margin: f64) {
+        let (xa, xb) = (bodies[a].positions(), bodies[b].positions());
+        let (sa, sb) = (bodies[a].start_positions(), bodies[b].start_positions());
+        let mu = self.settings.body_friction;
+        let slot_b = &mut self.slots[b];
+        let Some(bvh) = slot_b.bvh.as_mut() else {
+            return;
+        };
+        let tris = &slot_b.tris;
+        let bbox = slot_b_aabb(tris, xb, margin);
+        for &v in &bodies[a].surface().vertices {
+            let p = xa[v];
+            if !boxes_overlap(&(p, p), &bbox, 0.0) {
+                continue;
+            }
+            let mut best: Option<(f64, usize, [f64; 3])> = None;
+            bvh.query(&p, margin, |t| {
+                let [i, j, k] = tris[t];
+                let w = closest_point_on_triangle(&p, &xb[i], &xb[j], &xb[k]);
+                let q = xb[i] * w[0] + xb[j] * w[1] + xb[k] * w[2];
+                let d2 = (p - q).norm_squared();
+                if best.is_none_or(|bst| d2 < bst.0) {
+                    best = Some((d2, t, w));
+                }
+            });
+            let Some((_, t, w)) = best else { continue };
+            let [i, j, k] = tris[t];
+            let Some(n) = (xb[j] - xb[i]).cross(&(xb[k] - xb[i])).try_normalize(1e-300) else {
+                continue;
+            };
+            let q = xb[i] * w[0] + xb[j] * w[1] + xb[k] * w[2];
+            let gap = (p - q).dot(&n);
+            if gap >= margin || gap < -margin.max(0.5 * (xb[j] - xb[i]).norm()) {
+                continue;
+            }
+            let tg = tangents(&n);
+            let qs = sb[i] * w[0] + sb[j] * w[1] + sb[k] * w[2];
+            let rel = (p - sa[v]) - (q - qs);
+            self.contacts.push(Contact {
+                a: ContactSide {
+                    body: a,
+                    nodes: [v as u32, 0, 0],
+                    weights: [1.0, 0.0, 0.0],
+                },
+                other: ContactOther::Body(ContactSide {
+                    body: b,
+                    nodes: [i as u32, j as u32, k as u32],
+                    weights: w,
+                }),
+                normal: n,
+                tangents: tg,
+                gap,
+                slip: [tg[0].dot(&rel), tg[1].dot(&rel)],
+                mu,
+                point: q,
+                force: Vec3::zeros(),
+            });
+        }
+    }
+
+    /// Phase 2: builds `H` and `W = Σ_b h² H_b A_b⁻¹ H_bᵀ`.
+    pub fn build_compliance(&mut self, bodies: &[&SoftBody]) -> Result<()> {
+        let t0 = Instant::now();
+        self.rows.clear();
+        self.mu.clear();
+        self.delta0.clear();
+        for s in &mut self.slots {
+            s.entries.clear();
+        }
+        let mut friction_contacts = 0;
+        for c in &self.contacts {
+            self.rows.push(self.delta0.len());
+            self.mu.push(c.mu);
+            self.delta0.push(c.gap);
+            if c.mu > 0.0 {
+                self.delta0.push(c.slip[0]);
+                self.delta0.push(c.slip[1]);
+                friction_contacts += 1;
+            }
+        }
+        self.rows.push(self.delta0.len());
+        let m = self.delta0.len();
+        for (ci, c) in self.contacts.iter().enumerate() {
+            let r0 = self.rows[ci];
+            let dirs = [c.normal, c.tangents[0], c.tangents[1]];
+            let nrows = self.rows[ci + 1] - r0;
+            let mut push = |side: &ContactSide, sign: f64| {
+                let body = bodies[side.body];
+                for k in 0..3 {
+                    let (node, wgt) = (side.nodes[k] as usize, side.weights[k]);
+                    if wgt == 0.0 || body.constraints()[node] != NodeConstraint::Free {
+                        continue;
+                    }
+                    for (r, d) in dirs.iter().enumerate().take(nrows) {
+                        self.slots[side.body].entries.push(JacEntry {
+                            node: node as u32,
+                            row: (r0 + r) as u32,
+                            h: d * (sign * wgt),
+                            j: Vec3::zeros(),
+                        });
+                    }
+                }
+            };
+            push(&c.a, 1.0);
+            if let ContactOther::Body(b) = &c.other {
+                push(b, -1.0);
+            }
+        }
+        self.w.clear();
+        self.w.resize(m * m, 0.0);
+        for (bi, body) in bodies.iter().enumerate() {
+            let slot = &mut self.slots[bi];
+            if slot.entries.is_empty() {
+                continue;
+            }
+            slot.entries.sort_unstable_by_key(|e| (e.node, e.row));
+            slot.mode = body.settings().compliance.unwrap_or(self.settings.compliance);
+            slot.compliance
+                .accumulate(body, slot.mode, self.h, &mut slot.entries, &mut self.w, m)?;
+            self.report.solves += slot.compliance.solves();
+            self.report.gram_blocks += slot.compliance.gram_blocks();
+        }
+        if self.pass == 0 {
+            self.report.rows = m;
+            self.report.friction_contacts = friction_contacts;
+        }
+        self.report.compliance += t0.elapsed().as_secs_f64();
+        Ok(())
+    }
+
+    fn key(&self, c: &Contact, bodies: &[&SoftBody]) -> ContactKey {
+        let other = match c.other {
+            ContactOther::Tool(t) => t as u64,
+            ContactOther::Body(s) => (1 << 62) | bodies[s.body].id(),
+        };
+        (bodies[c.a.body].id(), c.a.nodes[0], other)
+    }
+
+    /// Phase 3: projected Gauss–Seidel on `W λ + δ₀`.
+    pub fn solve_lcp(&mut self, bodies: &[&SoftBody]) -> LcpReport {
+        let t0 = Instant::now();
+        let m = self.delta0.len();
+        self.lambda.clear();
+        self.lambda.resize(m, 0.0);
+        if self.settings.lcp.warm_start && self.pass == 0 {
+            for (ci, c) in self.contacts.iter().enumerate() {
+                if let Some(prev) = self.previous.get(&self.key(c, bodies)) {
+                    let r = self.rows[ci];
+                    for k in 0..(self.rows[ci + 1] - r) {
+                        self.lambda[r + k] = prev[k];
+                    }
+                }
+            }
+        }
+        let report = lcp::solve(
+            &self.w,
+            &self.delta0,
+            &self.rows,
+            &self.mu,
+            &mut self.lambda,
+            &self.settings.lcp,
+        );
+        if self.pass == 0 {
+            self.previous.clear();
+        }
+        for ci in 0..self.contacts.len() {
+            let r = self.rows[ci];
+            let mut f = [0.0; 3];
+            for k in 0..(self.rows[ci + 1] - r) {
+                f[k] = self.lambda[r + k];
+            }
+            if self.pass == 0 {
+                let key = self.key(&self.contacts[ci], bodies);
+                self.previous.insert(key, f);
+            }
+            self.contacts[ci].force = Vec3::new(f[0], f[1], f[2]);
+        }
+        self.report.lcp = report;
+        self.report.lcp_seconds += t0.elapsed().as_secs_f64();
+        report
+    }
+
+    /// Phase 4: applies `Δx = h² A⁻¹ Hᵀ λ` to every body and sets tool reactions.
+    pub fn correct(&mut self, bodies: &mut [&mut SoftBody], tools: &mut [&mut Tool]) -> Result<()> {
+        let t0 = Instant::now();
+        for (bi, body) in bodies.iter_mut().enumerate() {
+            let Some(slot) = self.slots.get_mut(bi) else {
+                continue;
+            };
+            if slot.entries.is_empty() {
+                continue;
+            }
+            slot.compliance.correction(
+                body,
+                slot.mode,
+                self.h,
+                &slot.entries,
+                &self.lambda,
+                &mut slot.dx,
+            )?;
+            if !slot.dx.iter().all(|d| d.iter().all(|c| c.is_finite())) {
+                return Err(SoftTissueError::NonFinite("contact correction"));
+            }
+            body.apply_correction(&slot.dx);
+        }
+        for (ti, t) in tools.iter_mut().enumerate() {
+            let (mut force, mut torque) = if self.pass == 0 {
+                (Vec3::zeros(), Vec3::zeros())
+            } else {
+                t.reaction()
+            };
+            for c in &self.contacts {
+                if c.other == ContactOther::Tool(ti) {
+                    let f = c.normal * c.force.x + c.tangents[0] * c.force.y + c.tangents[1] * c.force.z;
+                    let arm = c.point - t.pose().translation.vector;
+                    force -= f;
+                    torque -= arm.cross(&f);
+                }
+            }
+            t.set_reaction(force, torque);
+        }
+        self.report.correct += t0.elapsed().as_secs_f64();
+        Ok(())
+    }
+
+    /// Runs detection, compliance, LCP and correction, then further
+    /// frictionless passes while a vertex still penetrates (see
+    /// [`ContactSettings::max_passes`]). Skips everything after detection when
+    /// there is no contact.
+    pub fn step(&mut self, bodies: &mut [&mut SoftBody], tools: &mut [&mut Tool], h: f64) -> Result<()> {
+        self.pass = 0;
+        let result = self.run_passes(bodies, tools, h);
+        self.pass = 0;
+        result
+    }
+
+    fn run_passes(&mut self, bodies: &mut [&mut SoftBody], tools: &mut [&mut Tool], h: f64) -> Result<()> {
+        for pass in 0..self.settings.max_passes {
+            self.pass = pass;
+            {
+                let b: Vec<&SoftBody> = bodies.iter().map(|b| &**b).collect();
+                let t: Vec<&Tool> = tools.iter().map(|t| &**t).collect();
+                self.detect(&b, &t, h)?;
+                if pass > 0 && self.report.max_penetration <= self.settings.penetration_tolerance {
+                    break;
+                }
+                if self.contacts.is_empty() {
+                    if pass == 0 {
+                        self.previous.clear();
+                        for t in tools.iter_mut() {
+                            t.set_reaction(Vec3::zeros(), Vec3::zeros());
+                        }
+                    }
+                    break;
+                }
+                self.build_compliance(&b)?;
+                self.solve_lcp(&b);
+            }
+            self.correct(bodies, tools)?;
+            self.report.passes = pass + 1;
+        }
+        Ok(())
+    }
+}
+
+fn slot_b_aabb(tris: &[[usize; 3]], x: &[Vec3], margin: f64) -> (Vec3, Vec3) {
+    let mut lo = Vec3::repeat(f64::INFINITY);
+    let mut hi = Vec3::repeat(f64::NEG_INFINITY);
+    for t in tris {
+        for &v in t {
+            lo = lo.inf(&x[v]);
+            hi = hi.sup(&x[v]);
+        }
+    }
+    (lo.add_scalar(-margin), hi.add_scalar(margin))
+}
