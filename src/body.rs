@@ -35,7 +35,7 @@ use crate::error::{Result, SoftTissueError, check_positive};
 use crate::fem::assembly::{BlockCsr, BlockPattern};
 use crate::fem::{Element, RotationMethod};
 use crate::material::Material;
-use crate::math::{Mat3, Vec3, polar_rotation};
+use crate::math::{Mat3, Vec3, polar_rotation_fast};
 use crate::mesh::{Surface, TetMesh};
 use crate::solver::cg::{self, CgReport, CgScratch, CgSettings};
 use crate::solver::{PreconditionerKind, PreconditionerState, PreconditionerStats};
@@ -498,9 +498,13 @@ impl SoftBody {
         for (ei, e) in self.elements.iter().enumerate() {
             let xe = e.nodes.map(|n| self.x[n]);
             let ve = e.nodes.map(|n| self.v[n]);
-            let r = e.rotation(method, &xe);
+            let fx = e.deformation_gradient(&xe);
+            let r = match method {
+                RotationMethod::Polar => polar_rotation_fast(&fx),
+                RotationMethod::Qr => e.rotation(method, &xe),
+            };
             self.elem_rot[ei] = r;
-            let f = e.deformation_gradient(&xe) + e.deformation_gradient(&ve) * c_v;
+            let f = fx + e.deformation_gradient(&ve) * c_v;
             let s = r * e.stress(&r, &f) * e.volume;
             let rg = e.grads.map(|g| r * g);
             let slots = &pattern.element_slots[ei];
@@ -559,7 +563,7 @@ impl SoftBody {
             }
         }
         for r in &mut self.node_rot {
-            *r = polar_rotation(r);
+            *r = polar_rotation_fast(r);
         }
     }
 

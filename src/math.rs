@@ -87,3 +87,36 @@ pub fn unit_lower_solve_mat(l: &[f64; 3], b: &Mat3) -> Mat3 {
     }
     out
 }
+
+/// Same rotation as [`polar_rotation`], computed by Higham's scaled Newton
+/// iteration `X ← ½(γX + γ⁻¹X⁻ᵀ)` (quadratic convergence, a 3×3 cofactor per
+/// step) when `det F` is safely positive, and by the SVD with the sign fix for
+/// flat, inverted or non-converging cases.
+pub fn polar_rotation_fast(f: &Mat3) -> Mat3 {
+    let scale = f.norm();
+    let det = f.determinant();
+    if !(scale.is_finite() && det > 1e-6 * scale * scale * scale) {
+        return polar_rotation(f);
+    }
+    let mut x = *f;
+    let mut d = det;
+    for _ in 0..12 {
+        // X⁻ᵀ = cof(X) / det(X).
+        let c0 = x.column(1).cross(&x.column(2));
+        let c1 = x.column(2).cross(&x.column(0));
+        let c2 = x.column(0).cross(&x.column(1));
+        let inv_t = Mat3::from_columns(&[c0, c1, c2]) / d;
+        let gamma = (inv_t.norm() / x.norm()).sqrt();
+        let next = (x * gamma + inv_t / gamma) * 0.5;
+        let delta = (next - x).norm();
+        x = next;
+        if delta <= 1e-14 * x.norm() {
+            return x;
+        }
+        d = x.determinant();
+        if !(d > 0.0) {
+            break;
+        }
+    }
+    polar_rotation(f)
+}

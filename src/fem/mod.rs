@@ -21,12 +21,13 @@
 
 pub mod assembly;
 
-use crate::math::{Mat3, Vec3, edge_frame, polar_rotation};
+use crate::math::{Mat3, Vec3, edge_frame, polar_rotation_fast};
 
 /// How element rotations are extracted from the deformation gradient.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum RotationMethod {
-    /// Polar decomposition by SVD with a sign fix (robust for flat and inverted elements).
+    /// Polar decomposition (scaled Newton iteration; SVD with a sign fix for flat and
+    /// inverted elements), see [`crate::math::polar_rotation_fast`].
     #[default]
     Polar,
     /// Gram–Schmidt frame of the first two edges ("large" / QR variant): cheaper, not
@@ -84,7 +85,7 @@ impl Element {
     #[inline]
     pub fn rotation(&self, method: RotationMethod, x: &[Vec3; 4]) -> Mat3 {
         match method {
-            RotationMethod::Polar => polar_rotation(&self.deformation_gradient(x)),
+            RotationMethod::Polar => polar_rotation_fast(&self.deformation_gradient(x)),
             RotationMethod::Qr => {
                 edge_frame(&(x[1] - x[0]), &(x[2] - x[0])) * self.rest_frame.transpose()
             }
