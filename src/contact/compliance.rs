@@ -91,6 +91,8 @@ struct ColumnCache {
     cols: Vec<Column>,
     paths: Vec<usize>,
     blocks: Vec<Mat3>,
+    /// `D⁻¹ Z` per block, so Gram blocks need no division.
+    scaled: Vec<Mat3>,
     pairs: HashMap<(u32, u32), Mat3>,
     work: Vec<Mat3>,
     solves: usize,
@@ -141,6 +143,7 @@ impl ColumnCache {
         self.cols.clear();
         self.paths.clear();
         self.blocks.clear();
+        self.scaled.clear();
         self.pairs.clear();
         self.version = version;
     }
@@ -152,6 +155,17 @@ impl ColumnCache {
         }
         let start = self.paths.len();
         f.node_forward_solve(node, &mut self.work, &mut self.paths, &mut self.blocks);
+        for t in start..self.paths.len() {
+            let d = f.d[self.paths[t]];
+            let mut z = self.blocks[t];
+            for r in 0..3 {
+                let inv = 1.0 / d[r];
+                for c in 0..3 {
+                    z[(r, c)] *= inv;
+                }
+            }
+            self.scaled.push(z);
+        }
         let id = self.cols.len() as u32;
         self.cols.push(Column {
             start,
@@ -162,7 +176,7 @@ impl ColumnCache {
         id
     }
 
-    fn gram(&mut self, f: &LdltFactor, a: u32, b: u32) -> Mat3 {
+    fn gram(&mut self, a: u32, b: u32) -> Mat3 {
         let key = (a.min(b), a.max(b));
         if let Some(g) = self.pairs.get(&key) {
             return if a <= b { *g } else { g.transpose() };
@@ -179,21 +193,11 @@ impl ColumnCache {
             }
         }
         let mut g = Mat3::zeros();
-        while i < pa.len() && j < pb.len() {
-            let node = pa[i];
-            let za = &self.blocks[ca.start + i];
-            let zb = &self.blocks[cb.start + j];
-            let d = f.d[node];
-            let mut scaled = *zb;
-            for r in 0..3 {
-                let inv = 1.0 / d[r];
-                for c in 0..3 {
-                    scaled[(r, c)] *= inv;
-                }
-            }
-            g += za.transpose() * scaled;
-            i += 1;
-            j += 1;
+        let n = (pa.len() - i).min(pb.len() - j);
+        let za = &self.blocks[ca.start + i..ca.start + i + n];
+        let zb = &self.scaled[cb.start + j..cb.start + j + n];
+        for (a, b) in za.iter().zip(zb) {
+            g += a.tr_mul(b);
         }
         self.pairs.insert(key, g);
         self.gram_blocks += 1;
@@ -345,7 +349,7 @@ impl BodyCompliance {
                 }
                 for gi in 0..sc.groups.len() {
                     for gj in gi..sc.groups.len() {
-                        let g = cache.gram(factor, sc.cols[gi], sc.cols[gj]);
+                        let g = cache.gram(sc.cols[gi], sc.cols[gj]);
                         let (si, ei) = sc.groups[gi];
                         let (sj, ej) = sc.groups[gj];
                         for a in si..ei {

@@ -441,6 +441,48 @@ impl ContactSolver {
         }
     }
 
+    /// Replaces the detected contacts with `contacts` (for custom detection and
+    /// benchmarks); `h` is the step size used by the following phases.
+    pub fn set_contacts(&mut self, contacts: &[Contact], bodies: &[&SoftBody], h: f64) -> Result<()> {
+        check_positive("h", h)?;
+        for c in contacts {
+            let sides = std::iter::once(&c.a).chain(match &c.other {
+                ContactOther::Body(b) => Some(b),
+                ContactOther::Tool(_) => None,
+            });
+            for side in sides {
+                let body = bodies.get(side.body).ok_or(SoftTissueError::NodeOutOfRange {
+                    node: side.body,
+                    len: bodies.len(),
+                })?;
+                for &n in &side.nodes {
+                    if n as usize >= body.num_nodes() {
+                        return Err(SoftTissueError::NodeOutOfRange {
+                            node: n as usize,
+                            len: body.num_nodes(),
+                        });
+                    }
+                }
+            }
+            let finite = c.normal.iter().chain(c.tangents.iter().flatten()).all(|v| v.is_finite())
+                && c.gap.is_finite()
+                && c.mu.is_finite()
+                && c.mu >= 0.0;
+            if !finite {
+                return Err(SoftTissueError::NonFinite("contact"));
+            }
+        }
+        self.h = h;
+        self.prepare_slots(bodies);
+        self.contacts.clear();
+        self.contacts.extend_from_slice(contacts);
+        self.report = ContactReport {
+            contacts: contacts.len(),
+            ..Default::default()
+        };
+        Ok(())
+    }
+
     /// Phase 2: builds `H` and `W = Σ_b h² H_b A_b⁻¹ H_bᵀ`.
     pub fn build_compliance(&mut self, bodies: &[&SoftBody]) -> Result<()> {
         let t0 = Instant::now();

@@ -1,0 +1,92 @@
+//! Compliance build time against the number of contacts on the paper-size lens
+//! (1183 nodes), with friction (3 rows per contact): the paper's CPU method
+//! (`DenseRows`, two full solves per row) against `Factorized` (reach-restricted
+//! forward solves of node columns), cold (new factor) and warm (columns cached).
+//!
+//! ```text
+//! cargo run --release --example compliance_bench
+//! ```
+
+use bevy_soft_tissue::contact::{ContactOther, ContactSide};
+use bevy_soft_tissue::mesh::generate::LENS_RADII;
+use bevy_soft_tissue::prelude::*;
+use std::time::Instant;
+
+fn contacts(body: &SoftBody, n: usize) -> Vec<Contact> {
+    // The n surface vertices nearest to the top pole, pushed down by a rigid tool.
+    let mut verts: Vec<usize> = body.surface().vertices.clone();
+    let pole = v3(0.0, 0.0, LENS_RADII[2]);
+    verts.sort_by(|&a, &b| {
+        (body.positions()[a] - pole).norm().total_cmp(&(body.positions()[b] - pole).norm())
+    });
+    verts
+        .iter()
+        .take(n)
+        .map(|&v| Contact {
+            a: ContactSide { body: 0, nodes: [v as u32, 0, 0], weights: [1.0, 0.0, 0.0] },
+            other: ContactOther::Tool(0),
+            normal: v3(0.0, 0.0, -1.0),
+            tangents: [v3(1.0, 0.0, 0.0), v3(0.0, 1.0, 0.0)],
+            gap: -1e-5,
+            slip: [0.0, 0.0],
+            mu: 0.3,
+            point: body.positions()[v],
+            force: Vec3::zeros(),
+        })
+        .collect()
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
+}
+
+fn main() -> Result<()> {
+    let mesh = generate::ellipsoid(LENS_RADII, 12)?;
+    let settings = BodySettings { preconditioner: PreconditionerKind::Periodic { every: 1_000_000 }, ..Default::default() };
+    let mut body = SoftBody::new(mesh, Material::new(1000.0, 5e3, 0.45), settings)?;
+    body.fix_where(|p| p.z < -2.0e-3);
+    body.step(0.02)?;
+    println!("lens {} nodes; compliance build time (ms, median of 7), friction on (3 rows/contact)", body.num_nodes());
+    println!("{:>8} {:>6} {:>12} {:>16} {:>15} {:>9}", "contacts", "rows", "DenseRows", "Factorized cold", "Factorized warm", "speed-up");
+    for n in [30, 60, 90, 130, 260] {
+        let cs = contacts(&body, n);
+        let mut dense = Vec::new();
+        let mut cold = Vec::new();
+        let mut warm = Vec::new();
+        for _ in 0..7 {
+            for (mode, out) in [(ComplianceMode::DenseRows, &mut dense), (ComplianceMode::Factorized, &mut cold)] {
+                // A new solver has empty caches: every node column is solved.
+                let mut solver = ContactSolver::new(ContactSettings { compliance: mode, ..Default::default() })?;
+                solver.set_contacts(&cs, &[&body], 0.02)?;
+                let t0 = Instant::now();
+                solver.build_compliance(&[&body])?;
+                out.push(t0.elapsed().as_secs_f64() * 1e3);
+                if mode == ComplianceMode::Factorized {
+                    // Same factor, same nodes: columns and Gram blocks come from the cache.
+                    solver.set_contacts(&cs, &[&body], 0.02)?;
+                    let t0 = Instant::now();
+                    solver.build_compliance(&[&body])?;
+                    warm.push(t0.elapsed().as_secs_f64() * 1e3);
+                }
+            }
+        }
+        if std::env::var("PATH_STATS").is_ok() {
+            let sym = body.preconditioner().symbolic().expect("factor");
+            let mut union = std::collections::HashSet::new();
+            let mut total = 0;
+            for c in &cs {
+                let mut j = sym.iperm[c.a.nodes[0] as usize];
+                while j != usize::MAX {
+                    union.insert(j);
+                    total += 1;
+                    j = sym.parent[j];
+                }
+            }
+            println!("  mean path {:.1} nodes, union {} nodes, L blocks {}", total as f64 / n as f64, union.len(), sym.nnz_blocks());
+        }
+        let (d, c, w) = (median(dense), median(cold), median(warm));
+        println!("{:>8} {:>6} {:>12.3} {:>16.3} {:>15.3} {:>8.1}x", n, 3 * n, d, c, w, d / c);
+    }
+    Ok(())
+}
