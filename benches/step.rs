@@ -8,7 +8,7 @@ use bevy_soft_tissue::prelude::*;
 use criterion::{Criterion, criterion_group, criterion_main};
 use nalgebra::Rotation3;
 
-fn lens_body(kind: PreconditionerKind) -> (SoftBody, Vec<usize>) {
+fn lens_body(kind: PreconditionerKind) -> (DeformableBody, Vec<usize>) {
     let mesh = generate::ellipsoid(LENS_RADII, 12).expect("lens mesh");
     let material = Material::new(1000.0, 5e3, 0.45).with_stiffness(StiffnessField::Radial {
         center: Vec3::zeros(),
@@ -22,7 +22,7 @@ fn lens_body(kind: PreconditionerKind) -> (SoftBody, Vec<usize>) {
         cg: CgSettings { max_iterations: 1000, ..Default::default() },
         ..Default::default()
     };
-    let mut body = SoftBody::new(mesh.clone(), material, settings).expect("body");
+    let mut body = DeformableBody::new(mesh.clone(), material, settings).expect("body");
     body.fix_where(|p| p.z < -1.6e-3);
     let top = (0..mesh.num_vertices()).filter(|&i| mesh.positions()[i].z > 1.6e-3).collect();
     (body, top)

@@ -12,7 +12,7 @@ use bevy_soft_tissue::mesh::generate::LENS_RADII;
 use bevy_soft_tissue::prelude::*;
 use std::time::Instant;
 
-fn contacts(body: &SoftBody, n: usize) -> Vec<Contact> {
+fn contacts(body: &DeformableBody, n: usize) -> Vec<Contact> {
     // The n surface vertices nearest to the top pole, pushed down by a rigid tool.
     let mut verts: Vec<usize> = body.surface().vertices.clone();
     let pole = v3(0.0, 0.0, LENS_RADII[2]);
@@ -44,7 +44,7 @@ fn median(mut v: Vec<f64>) -> f64 {
 fn main() -> Result<()> {
     let mesh = generate::ellipsoid(LENS_RADII, 12)?;
     let settings = BodySettings { preconditioner: PreconditionerKind::Periodic { every: 1_000_000 }, ..Default::default() };
-    let mut body = SoftBody::new(mesh, Material::new(1000.0, 5e3, 0.45), settings)?;
+    let mut body = DeformableBody::new(mesh, Material::new(1000.0, 5e3, 0.45), settings)?;
     body.fix_where(|p| p.z < -2.0e-3);
     body.step(0.02)?;
     println!("lens {} nodes; compliance build time (ms, median of 7), friction on (3 rows/contact)", body.num_nodes());

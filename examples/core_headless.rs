@@ -47,7 +47,7 @@ fn run(kind: PreconditionerKind, steps: usize) -> Result<()> {
         cg: CgSettings { tolerance: 1e-6, max_iterations: 1000, warm_start: true },
         ..Default::default()
     };
-    let mut body = SoftBody::new(mesh.clone(), material, settings)?;
+    let mut body = DeformableBody::new(mesh.clone(), material, settings)?;
     let top: Vec<usize> = (0..mesh.num_vertices()).filter(|&i| mesh.positions()[i].z > 1.6e-3).collect();
     body.fix_where(|p| p.z < -1.6e-3);
     let (mut asm, mut fac, mut pre, mut cg, mut total, mut its, mut ages) =

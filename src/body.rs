@@ -1,6 +1,6 @@
 //! A deformable body and its linearized implicit Euler step.
 //!
-//! [`SoftBody`] owns a mesh, its material, its state (positions `x`,
+//! [`DeformableBody`] owns a mesh, its material, its state (positions `x`,
 //! velocities `v`), the assembled system and the preconditioner. One step of
 //! size `h` solves the paper's equation (2):
 //!
@@ -16,12 +16,12 @@
 //! The step is split into the phases the plugin schedules separately, so that
 //! contacts can be solved between free motion and the final positions:
 //!
-//! 1. [`SoftBody::assemble`] — element rotations, forces and `A`, `b`, in place;
-//! 2. [`SoftBody::update_preconditioner`] — factor refresh / swap and rotation warp;
-//! 3. [`SoftBody::solve_free_motion`] — conjugate gradient and integration;
-//! 4. (contacts) [`SoftBody::apply_correction`] — positions and velocities corrected.
+//! 1. [`DeformableBody::assemble`] — element rotations, forces and `A`, `b`, in place;
+//! 2. [`DeformableBody::update_preconditioner`] — factor refresh / swap and rotation warp;
+//! 3. [`DeformableBody::solve_free_motion`] — conjugate gradient and integration;
+//! 4. (contacts) [`DeformableBody::apply_correction`] — positions and velocities corrected.
 //!
-//! [`SoftBody::step`] runs 1–3.
+//! [`DeformableBody::step`] runs 1–3.
 //!
 //! ## Constrained nodes
 //! Fixed and kinematically driven nodes get a prescribed acceleration `a_i`.
@@ -54,6 +54,9 @@ pub struct BodySettings {
     pub gravity: Option<Vec3>,
     /// Contact compliance of this body; `None` uses the contact solver's default.
     pub compliance: Option<crate::contact::ComplianceMode>,
+    /// Apply the material's Rayleigh damping (no damping term is assembled when
+    /// false or when both coefficients are zero).
+    pub damping: bool,
 }
 
 impl Default for BodySettings {
@@ -64,6 +67,7 @@ impl Default for BodySettings {
             cg: CgSettings::default(),
             gravity: None,
             compliance: None,
+            damping: true,
         }
     }
 }
@@ -102,11 +106,15 @@ pub struct StepReport {
     pub preconditioner: PreconditionerStats,
     /// Phase timings.
     pub timings: StepTimings,
+    /// Whether damping terms were assembled.
+    pub damping: bool,
+    /// Whether gravity was applied.
+    pub gravity: bool,
 }
 
 /// A deformable tetrahedral body (see the module docs).
 #[derive(Debug)]
-pub struct SoftBody {
+pub struct DeformableBody {
     id: u64,
     mesh: TetMesh,
     surface: Surface,
@@ -157,7 +165,7 @@ fn lumped_mass(mesh: &TetMesh, elements: &[Element], density: f64) -> Vec<f64> {
     m
 }
 
-impl SoftBody {
+impl DeformableBody {
     /// Creates a body at rest in its mesh's configuration.
     pub fn new(mesh: TetMesh, material: Material, settings: BodySettings) -> Result<Self> {
         validate_settings(&settings)?;
@@ -472,7 +480,13 @@ impl SoftBody {
             return Err(SoftTissueError::NonFinite("body state"));
         }
         self.h = h;
-        let damp = self.material.damping;
+        let damp = if self.settings.damping {
+            self.material.damping
+        } else {
+            crate::material::RayleighDamping::default()
+        };
+        self.report.damping = !damp.is_zero();
+        self.report.gravity = self.settings.gravity.is_some();
         let c_m = 1.0 + h * damp.mass;
         let c_k = h * damp.stiffness + h * h;
         let c_v = damp.stiffness + h;

@@ -24,7 +24,7 @@
 //!
 //! let mesh = generate::box_mesh(v3(0.0, 0.0, 0.0), v3(0.1, 0.02, 0.02), [10, 2, 2]).unwrap();
 //! let settings = BodySettings { gravity: Some(v3(0.0, 0.0, -9.81)), ..Default::default() };
-//! let mut body = SoftBody::new(mesh, Material::new(1000.0, 1e5, 0.3), settings).unwrap();
+//! let mut body = DeformableBody::new(mesh, Material::new(1000.0, 1e5, 0.3), settings).unwrap();
 //! body.fix_where(|p| p.x < 1e-9);
 //! for _ in 0..10 {
 //!     let report = body.step(0.01).unwrap();
@@ -39,14 +39,21 @@ pub mod fem;
 pub mod material;
 pub mod math;
 pub mod mesh;
+pub mod plugin;
 pub mod scene;
 pub mod solver;
 
+pub use plugin::{SoftTissuePlugin, SoftTissueSystems};
+
 /// The most used items.
 pub mod prelude {
-    pub use crate::body::{BodySettings, NodeConstraint, SoftBody, StepReport, StepTimings};
+    pub use crate::plugin::{
+        BodyContacts, ComplianceOverride, FixedNodes, PreconditionerOverride, SoftBody, SoftTissueConfig,
+        SoftTissueContacts, SoftTissueDiagnostics, SoftTissuePlugin, SoftTissueSystems, Tool, ToolReaction,
+    };
+    pub use crate::body::{BodySettings, NodeConstraint, DeformableBody, StepReport, StepTimings};
     pub use crate::contact::{
-        ComplianceMode, Contact, ContactReport, ContactSettings, ContactSolver, LcpSettings, Pose, Tool,
+        ComplianceMode, Contact, ContactReport, ContactSettings, ContactSolver, LcpSettings, Pose, RigidTool,
         ToolShape,
     };
     pub use crate::error::{Result, SoftTissueError};

@@ -4,17 +4,17 @@
 //! system sets: assemble → factorize → free motion → detect → compliance →
 //! LCP → correct. Contact phases are skipped when nothing can touch.
 
-use crate::body::SoftBody;
-use crate::contact::{ContactReport, ContactSettings, ContactSolver, Tool};
+use crate::body::DeformableBody;
+use crate::contact::{ContactReport, ContactSettings, ContactSolver, RigidTool};
 use crate::error::Result;
 
 /// Bodies, tools and their contact solver.
 #[derive(Debug, Default)]
 pub struct Scene {
     /// Deformable bodies.
-    pub bodies: Vec<SoftBody>,
+    pub bodies: Vec<DeformableBody>,
     /// Rigid tools.
-    pub tools: Vec<Tool>,
+    pub tools: Vec<RigidTool>,
     /// The contact pipeline.
     pub contact: ContactSolver,
 }
@@ -30,13 +30,13 @@ impl Scene {
     }
 
     /// Adds a body; returns its index.
-    pub fn add_body(&mut self, body: SoftBody) -> usize {
+    pub fn add_body(&mut self, body: DeformableBody) -> usize {
         self.bodies.push(body);
         self.bodies.len() - 1
     }
 
     /// Adds a tool; returns its index.
-    pub fn add_tool(&mut self, tool: Tool) -> usize {
+    pub fn add_tool(&mut self, tool: RigidTool) -> usize {
         self.tools.push(tool);
         self.tools.len() - 1
     }
@@ -60,8 +60,8 @@ impl Scene {
             b.solve_free_motion()?;
         }
         if self.can_touch() {
-            let mut bodies: Vec<&mut SoftBody> = self.bodies.iter_mut().collect();
-            let mut tools: Vec<&mut Tool> = self.tools.iter_mut().collect();
+            let mut bodies: Vec<&mut DeformableBody> = self.bodies.iter_mut().collect();
+            let mut tools: Vec<&mut RigidTool> = self.tools.iter_mut().collect();
             self.contact.step(&mut bodies, &mut tools, h)?;
         }
         for t in &mut self.tools {

@@ -5,7 +5,7 @@ use bevy_soft_tissue::mesh::generate::LENS_RADII;
 use bevy_soft_tissue::prelude::*;
 use nalgebra::{DMatrix, Isometry3, Translation3, UnitQuaternion};
 
-fn lens(cells: usize, kind: PreconditionerKind) -> SoftBody {
+fn lens(cells: usize, kind: PreconditionerKind) -> DeformableBody {
     let mesh = generate::ellipsoid(LENS_RADII, cells).unwrap();
     let material = Material::new(1000.0, 5e3, 0.45)
         .with_stiffness(StiffnessField::Radial {
@@ -16,7 +16,7 @@ fn lens(cells: usize, kind: PreconditionerKind) -> SoftBody {
             transition: Transition::Sharp,
         })
         .with_damping(1.0, 0.01);
-    SoftBody::new(mesh, material, BodySettings { preconditioner: kind, ..Default::default() }).unwrap()
+    DeformableBody::new(mesh, material, BodySettings { preconditioner: kind, ..Default::default() }).unwrap()
 }
 
 fn at(x: f64, y: f64, z: f64) -> Pose {
@@ -30,7 +30,7 @@ fn pressed_lens(kind: PreconditionerKind, mode: ComplianceMode) -> (Scene, f64) 
     let mut body = lens(8, kind);
     body.fix_where(|p| p.z < -1.8e-3);
     scene.add_body(body);
-    let tool = Tool::new(ToolShape::Sphere { radius: 3e-3 }, at(0.5e-3, 0.0, 2.25e-3 + 3e-3 + 1e-4))
+    let tool = RigidTool::new(ToolShape::Sphere { radius: 3e-3 }, at(0.5e-3, 0.0, 2.25e-3 + 3e-3 + 1e-4))
         .unwrap()
         .with_friction(0.3)
         .unwrap();
@@ -169,7 +169,7 @@ fn contact_conditions_hold_after_every_step() {
         let rot = UnitQuaternion::from_euler_angles(0.0, 0.0, std::f64::consts::FRAC_PI_2 + 0.01 * s as f64);
         Isometry3::from_parts(Translation3::new(3e-5 * s as f64, 0.0, z), rot)
     };
-    scene.add_tool(Tool::new(ToolShape::Capsule { half_height: 2e-3, radius: 1e-3 }, pose(0)).unwrap().with_friction(0.2).unwrap());
+    scene.add_tool(RigidTool::new(ToolShape::Capsule { half_height: 2e-3, radius: 1e-3 }, pose(0)).unwrap().with_friction(0.2).unwrap());
     let mut active = 0;
     let mut pushed = false;
     for s in 0..80 {
@@ -206,10 +206,10 @@ fn block_slide(theta_deg: f64, mu: f64) -> f64 {
         gravity: Some(v3(g * th.sin(), 0.0, -g * th.cos())),
         ..Default::default()
     };
-    let body = SoftBody::new(mesh, Material::new(1000.0, 5e4, 0.3).with_damping(2.0, 0.0), settings).unwrap();
+    let body = DeformableBody::new(mesh, Material::new(1000.0, 5e4, 0.3).with_damping(2.0, 0.0), settings).unwrap();
     let mut scene = Scene::new(ContactSettings { alarm_distance: 2e-4, ..Default::default() }).unwrap();
     scene.add_body(body);
-    let plane = Tool::new(ToolShape::Box { half_extents: v3(0.2, 0.2, 0.01) }, at(0.0, 0.0, -0.01 - 1e-5)).unwrap().with_friction(mu).unwrap();
+    let plane = RigidTool::new(ToolShape::Box { half_extents: v3(0.2, 0.2, 0.01) }, at(0.0, 0.0, -0.01 - 1e-5)).unwrap().with_friction(mu).unwrap();
     scene.add_tool(plane);
     let x0: f64 = scene.bodies[0].positions().iter().map(|p| p.x).sum::<f64>() / scene.bodies[0].num_nodes() as f64;
     for _ in 0..60 {
@@ -233,15 +233,15 @@ fn friction_sticks_below_and_slides_above_the_cone() {
 }
 
 /// Four boxes around a square hole: the paper's rigid plate.
-fn plate_with_hole(half_hole: f64) -> Vec<Tool> {
+fn plate_with_hole(half_hole: f64) -> Vec<RigidTool> {
     let (t, big) = (0.5e-3, 20e-3);
     let w = 0.5 * (big - half_hole);
     let c = half_hole + w;
     vec![
-        Tool::new(ToolShape::Box { half_extents: v3(w, big, t) }, at(c, 0.0, 0.0)).unwrap(),
-        Tool::new(ToolShape::Box { half_extents: v3(w, big, t) }, at(-c, 0.0, 0.0)).unwrap(),
-        Tool::new(ToolShape::Box { half_extents: v3(half_hole, w, t) }, at(0.0, c, 0.0)).unwrap(),
-        Tool::new(ToolShape::Box { half_extents: v3(half_hole, w, t) }, at(0.0, -c, 0.0)).unwrap(),
+        RigidTool::new(ToolShape::Box { half_extents: v3(w, big, t) }, at(c, 0.0, 0.0)).unwrap(),
+        RigidTool::new(ToolShape::Box { half_extents: v3(w, big, t) }, at(-c, 0.0, 0.0)).unwrap(),
+        RigidTool::new(ToolShape::Box { half_extents: v3(half_hole, w, t) }, at(0.0, c, 0.0)).unwrap(),
+        RigidTool::new(ToolShape::Box { half_extents: v3(half_hole, w, t) }, at(0.0, -c, 0.0)).unwrap(),
     ]
 }
 
@@ -262,7 +262,7 @@ fn paper_fig3_lens_through_hole_every_mode() {
         for t in plate_with_hole(3.8e-3) {
             scene.add_tool(t);
         }
-        let sphere = scene.add_tool(Tool::new(ToolShape::Sphere { radius: 2.5e-3 }, at(0.0, 0.0, 8e-3)).unwrap().with_friction(0.1).unwrap());
+        let sphere = scene.add_tool(RigidTool::new(ToolShape::Sphere { radius: 2.5e-3 }, at(0.0, 0.0, 8e-3)).unwrap().with_friction(0.1).unwrap());
         let mut max_contacts = 0;
         for s in 0..500 {
             let z = 8e-3 - 2.4e-5 * s as f64;
@@ -286,9 +286,9 @@ fn two_bodies_pressed_together() {
     let lower = generate::box_mesh(v3(-4e-3, -4e-3, -4e-3), v3(4e-3, 4e-3, 0.0), [4, 4, 2]).unwrap();
     let upper = generate::box_mesh(v3(-3e-3, -3e-3, 0.05e-3), v3(3e-3, 3e-3, 4e-3), [3, 3, 2]).unwrap();
     let g = Some(v3(0.0, 0.0, -9.81));
-    let mut a = SoftBody::new(lower, Material::new(1000.0, 2e4, 0.3), BodySettings { gravity: g, ..Default::default() }).unwrap();
+    let mut a = DeformableBody::new(lower, Material::new(1000.0, 2e4, 0.3), BodySettings { gravity: g, ..Default::default() }).unwrap();
     a.fix_where(|p| p.z < -4e-3 + 1e-9);
-    let mut b = SoftBody::new(upper, Material::new(1000.0, 2e4, 0.3), BodySettings { gravity: g, ..Default::default() }).unwrap();
+    let mut b = DeformableBody::new(upper, Material::new(1000.0, 2e4, 0.3), BodySettings { gravity: g, ..Default::default() }).unwrap();
     let top: Vec<usize> = (0..b.num_nodes()).filter(|&i| b.mesh().positions()[i].z > 4e-3 - 1e-9).collect();
     for &i in &top {
         b.set_external_force(i, v3(0.0, 0.0, -2e-5)).unwrap();
@@ -337,11 +337,11 @@ fn bad_tools_and_poses_are_errors() {
         ToolShape::TriMesh { vertices: vec![], indices: vec![] },
     ];
     for s in bad {
-        assert!(matches!(Tool::new(s.clone(), pose), Err(SoftTissueError::InvalidShape(_))), "accepted {s:?}");
+        assert!(matches!(RigidTool::new(s.clone(), pose), Err(SoftTissueError::InvalidShape(_))), "accepted {s:?}");
     }
     let nan_pose = at(f64::NAN, 0.0, 0.0);
-    assert!(matches!(Tool::new(ToolShape::Sphere { radius: 1.0 }, nan_pose), Err(SoftTissueError::NonFinite(_))));
-    let mut t = Tool::new(ToolShape::Sphere { radius: 1.0 }, pose).unwrap();
+    assert!(matches!(RigidTool::new(ToolShape::Sphere { radius: 1.0 }, nan_pose), Err(SoftTissueError::NonFinite(_))));
+    let mut t = RigidTool::new(ToolShape::Sphere { radius: 1.0 }, pose).unwrap();
     assert!(t.set_pose(nan_pose).is_err());
     assert!(t.set_friction(-0.1).is_err());
     assert!(t.set_friction(f64::NAN).is_err());
@@ -350,7 +350,7 @@ fn bad_tools_and_poses_are_errors() {
     s.lcp.over_relaxation = 2.5;
     assert!(ContactSolver::new(s).is_err());
     // Good shapes answer signed distances with outward normals.
-    let hull = Tool::new(
+    let hull = RigidTool::new(
         ToolShape::ConvexHull { points: vec![v3(0., 0., 0.), v3(1., 0., 0.), v3(0., 1., 0.), v3(0., 0., 1.)] },
         pose,
     )
@@ -367,12 +367,12 @@ fn no_friction_rows_when_mu_is_zero_and_no_work_without_contact() {
     assert_eq!(scene.contact.report().rows, 3 * scene.contact.report().contacts);
     let mut scene = Scene::new(ContactSettings::default()).unwrap();
     scene.add_body(lens(6, PreconditionerKind::Async));
-    scene.add_tool(Tool::new(ToolShape::Sphere { radius: 3e-3 }, at(0.0, 0.0, 2.25e-3 + 3e-3 - 2e-4)).unwrap());
+    scene.add_tool(RigidTool::new(ToolShape::Sphere { radius: 3e-3 }, at(0.0, 0.0, 2.25e-3 + 3e-3 - 2e-4)).unwrap());
     let r = scene.step(0.01).unwrap();
     assert!(r.contacts > 0);
     assert_eq!(r.rows, r.contacts, "frictionless contacts must have one row each");
     assert_eq!(r.friction_contacts, 0);
-    // Tool far away: detection tests no vertex, nothing else runs.
+    // RigidTool far away: detection tests no vertex, nothing else runs.
     scene.tools[0].set_pose(at(1.0, 0.0, 0.0)).unwrap();
     let r = scene.step(0.01).unwrap();
     assert_eq!((r.contacts, r.pairs_tested, r.rows, r.solves), (0, 0, 0, 0));
@@ -384,7 +384,7 @@ fn node_columns_are_reused_while_the_factor_is_unchanged() {
     let mut body = lens(8, PreconditionerKind::Periodic { every: 1000 });
     body.fix_where(|p| p.z < -1.8e-3);
     scene.add_body(body);
-    scene.add_tool(Tool::new(ToolShape::Sphere { radius: 3e-3 }, at(0.0, 0.0, 2.25e-3 + 3e-3 - 1e-4)).unwrap());
+    scene.add_tool(RigidTool::new(ToolShape::Sphere { radius: 3e-3 }, at(0.0, 0.0, 2.25e-3 + 3e-3 - 1e-4)).unwrap());
     let first = scene.step(0.01).unwrap();
     assert!(first.solves > 0 && first.contacts > 0);
     let second = scene.step(0.01).unwrap();

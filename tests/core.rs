@@ -29,7 +29,7 @@ fn rigid_motion_gives_zero_elastic_force() {
             preconditioner: PreconditionerKind::None,
             ..Default::default()
         };
-        let mut body = SoftBody::new(mesh.clone(), Material::new(1000.0, 1e5, 0.3), settings).unwrap();
+        let mut body = DeformableBody::new(mesh.clone(), Material::new(1000.0, 1e5, 0.3), settings).unwrap();
         let n = body.num_nodes();
         let mut f = vec![Vec3::zeros(); n];
         for deg in [0.0, 30.0, 90.0, 135.0, 179.0, 180.0] {
@@ -49,7 +49,7 @@ fn rigid_motion_gives_zero_elastic_force() {
 }
 
 /// Sums the elastic forces on the nodes of a face `coord(axis) == value`.
-fn face_force(body: &SoftBody, f: &[Vec3], axis: usize, value: f64) -> Vec3 {
+fn face_force(body: &DeformableBody, f: &[Vec3], axis: usize, value: f64) -> Vec3 {
     body.mesh()
         .positions()
         .iter()
@@ -68,7 +68,7 @@ fn uniaxial_stretch_recovers_young_and_poisson() {
         preconditioner: PreconditionerKind::None,
         ..Default::default()
     };
-    let mut body = SoftBody::new(mesh.clone(), Material::new(1000.0, young, nu), body_settings).unwrap();
+    let mut body = DeformableBody::new(mesh.clone(), Material::new(1000.0, young, nu), body_settings).unwrap();
     let n = body.num_nodes();
     // Pure longitudinal strain u = (εx, 0, 0): σxx = (λ+2μ)ε, σyy = λε.
     let eps = 1e-7;
@@ -120,7 +120,7 @@ fn cantilever_tip(cells: [usize; 3]) -> (f64, f64) {
         ..Default::default()
     };
     let material = Material::new(rho, young, 0.3).with_damping(1.0, 0.0);
-    let mut body = SoftBody::new(mesh, material, settings).unwrap();
+    let mut body = DeformableBody::new(mesh, material, settings).unwrap();
     body.fix_where(|p| p.x < 1e-9);
     // Large implicit steps converge to the static equilibrium.
     for _ in 0..4 {
@@ -164,7 +164,7 @@ fn exact_ldlt_converges_in_at_most_two_iterations() {
         gravity: Some(v3(0.0, -9.81, 0.0)),
         ..Default::default()
     };
-    let mut body = SoftBody::new(mesh, lens_material(), settings).unwrap();
+    let mut body = DeformableBody::new(mesh, lens_material(), settings).unwrap();
     body.fix_where(|p| p.z < -1.5e-3);
     for _ in 0..20 {
         let r = body.step(0.01).unwrap();
@@ -195,7 +195,7 @@ fn lens_iterations(kind: PreconditionerKind, steps: usize) -> (f64, f64) {
         },
         ..Default::default()
     };
-    let mut body = SoftBody::new(mesh.clone(), lens_material(), settings).unwrap();
+    let mut body = DeformableBody::new(mesh.clone(), lens_material(), settings).unwrap();
     let top: Vec<usize> = (0..mesh.num_vertices()).filter(|&i| mesh.positions()[i].z > 1.6e-3).collect();
     let bottom: Vec<usize> = (0..mesh.num_vertices()).filter(|&i| mesh.positions()[i].z < -1.6e-3).collect();
     let h = 0.02;
@@ -268,10 +268,10 @@ fn hard_case_stays_stable() {
         gravity: Some(v3(0.0, 0.0, -g)),
         ..Default::default()
     };
-    let mut body = SoftBody::new(mesh.clone(), material, settings).unwrap();
+    let mut body = DeformableBody::new(mesh.clone(), material, settings).unwrap();
     body.fix_where(|p| p.x > 0.2 - 1e-9);
     let m: Vec<f64> = body.mass().to_vec();
-    let potential = |b: &SoftBody| -> f64 {
+    let potential = |b: &DeformableBody| -> f64 {
         b.positions()
             .iter()
             .zip(b.mesh().positions())
@@ -297,7 +297,7 @@ fn hard_case_stays_stable() {
 #[test]
 fn ldlt_solves_and_node_columns_match_dense() {
     let mesh = generate::ellipsoid([1.0, 0.8, 0.6], 5).unwrap();
-    let mut body = SoftBody::new(
+    let mut body = DeformableBody::new(
         mesh,
         Material::new(1000.0, 1e4, 0.3),
         BodySettings {
@@ -360,7 +360,7 @@ fn ldlt_rejects_indefinite_matrix() {
 #[test]
 fn async_worker_stops_when_body_dropped() {
     let mesh = generate::ellipsoid(LENS_RADII, 6).unwrap();
-    let mut body = SoftBody::new(mesh, lens_material(), BodySettings::default()).unwrap();
+    let mut body = DeformableBody::new(mesh, lens_material(), BodySettings::default()).unwrap();
     for _ in 0..5 {
         body.step(0.01).unwrap();
     }
@@ -373,7 +373,7 @@ fn async_worker_stops_when_body_dropped() {
 #[test]
 fn async_factor_is_refreshed_and_used() {
     let mesh = generate::ellipsoid(LENS_RADII, 8).unwrap();
-    let mut body = SoftBody::new(mesh, lens_material(), BodySettings {
+    let mut body = DeformableBody::new(mesh, lens_material(), BodySettings {
         gravity: Some(v3(0.0, -9.81, 0.0)),
         ..Default::default()
     })
@@ -511,18 +511,18 @@ fn parameter_errors() {
         }),
     ];
     for m in bad {
-        let r = SoftBody::new(mesh.clone(), m.clone(), BodySettings::default());
+        let r = DeformableBody::new(mesh.clone(), m.clone(), BodySettings::default());
         assert!(r.is_err(), "accepted {m:?}");
     }
     let ok = Material::new(1000.0, 1e4, 0.3);
     let mut s = BodySettings::default();
     s.cg.tolerance = 0.0;
-    assert!(SoftBody::new(mesh.clone(), ok.clone(), s).is_err());
+    assert!(DeformableBody::new(mesh.clone(), ok.clone(), s).is_err());
     let s = BodySettings { preconditioner: PreconditionerKind::Periodic { every: 0 }, ..Default::default() };
-    assert!(SoftBody::new(mesh.clone(), ok.clone(), s).is_err());
+    assert!(DeformableBody::new(mesh.clone(), ok.clone(), s).is_err());
     let s = BodySettings { gravity: Some(v3(0.0, f64::NAN, 0.0)), ..Default::default() };
-    assert!(SoftBody::new(mesh.clone(), ok.clone(), s).is_err());
-    let mut body = SoftBody::new(mesh.clone(), ok, BodySettings::default()).unwrap();
+    assert!(DeformableBody::new(mesh.clone(), ok.clone(), s).is_err());
+    let mut body = DeformableBody::new(mesh.clone(), ok, BodySettings::default()).unwrap();
     assert!(body.step(0.0).is_err());
     assert!(body.step(f64::NAN).is_err());
     assert!(body.step(-0.01).is_err());
@@ -549,7 +549,7 @@ fn parameter_errors() {
 #[test]
 fn body_with_nan_state_is_rejected_not_propagated() {
     let mesh = beam([3, 1, 1], 0.1, 0.02);
-    let mut body = SoftBody::new(mesh, Material::new(1000.0, 1e4, 0.3), BodySettings::default()).unwrap();
+    let mut body = DeformableBody::new(mesh, Material::new(1000.0, 1e4, 0.3), BodySettings::default()).unwrap();
     body.step(0.01).unwrap();
     // Make the right-hand side non-finite through an external force that overflows.
     body.set_external_force(0, v3(f64::MAX, 0.0, 0.0)).unwrap();
@@ -662,7 +662,7 @@ fn material_change_at_runtime_changes_stiffness() {
         ..Default::default()
     };
     let sag = |young: f64| {
-        let mut b = SoftBody::new(mesh.clone(), Material::new(1000.0, 1e5, 0.3).with_damping(1.0, 0.0), settings).unwrap();
+        let mut b = DeformableBody::new(mesh.clone(), Material::new(1000.0, 1e5, 0.3).with_damping(1.0, 0.0), settings).unwrap();
         b.fix_where(|p| p.x < 1e-9);
         b.set_material(Material::new(1000.0, young, 0.3).with_damping(1.0, 0.0)).unwrap();
         for _ in 0..20 {

@@ -40,7 +40,7 @@ use std::sync::Arc;
 
 use nalgebra::DMatrix;
 
-use crate::body::SoftBody;
+use crate::body::DeformableBody;
 use crate::error::{Result, SoftTissueError};
 use crate::math::{Mat3, Vec3};
 use crate::solver::ldlt::{LdltFactor, LdltSymbolic};
@@ -227,7 +227,7 @@ impl BodyCompliance {
         self.cache.gram_blocks
     }
 
-    fn refactor_own(&mut self, body: &SoftBody) -> Result<()> {
+    fn refactor_own(&mut self, body: &DeformableBody) -> Result<()> {
         let sym = match (&self.own_symbolic, body.preconditioner().symbolic()) {
             (Some(s), _) => Arc::clone(s),
             (None, Some(s)) => Arc::clone(s),
@@ -253,7 +253,7 @@ impl BodyCompliance {
     /// `entries` must be sorted by node; their `j` is filled here.
     pub fn accumulate(
         &mut self,
-        body: &SoftBody,
+        body: &DeformableBody,
         mode: ComplianceMode,
         h: f64,
         entries: &mut [JacEntry],
@@ -370,7 +370,7 @@ impl BodyCompliance {
         Ok(())
     }
 
-    fn dense_inverse(&mut self, body: &SoftBody) -> Result<DMatrix<f64>> {
+    fn dense_inverse(&mut self, body: &DeformableBody) -> Result<DMatrix<f64>> {
         let n = body.num_nodes();
         self.refactor_own(body)?;
         let f = self.own.as_ref().ok_or(SoftTissueError::NonFinite("factor"))?;
@@ -397,7 +397,7 @@ impl BodyCompliance {
     /// of `A⁻¹` that [`Self::accumulate`] used this step. `entries` as passed there.
     pub fn correction(
         &mut self,
-        body: &SoftBody,
+        body: &DeformableBody,
         mode: ComplianceMode,
         h: f64,
         entries: &[JacEntry],

@@ -1,6 +1,6 @@
 //! Collision detection: surface vertices against tools and against other bodies.
 //!
-//! - **Tool – body**: every surface vertex inside the tool's bounds (grown
+//! - **RigidTool – body**: every surface vertex inside the tool's bounds (grown
 //!   by the alarm distance) is projected into the tool frame (parry3d-f64);
 //!   a signed distance below the alarm distance makes a contact with the
 //!   tool's outward normal.

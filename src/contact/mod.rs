@@ -1,10 +1,10 @@
 //! Contact response: detection, compliance, friction LCP and correction.
 //!
 //! This is the paper's section 4. After every body has moved freely
-//! ([`SoftBody::solve_free_motion`]), [`ContactSolver`] runs four phases:
+//! ([`DeformableBody::solve_free_motion`]), [`ContactSolver`] runs four phases:
 //!
 //! 1. **Detect** ([`ContactSolver::detect`], [`detect`]): surface vertices
-//!    against rigid [`Tool`]s (parry3d-f64) and against the surface triangles of
+//!    against rigid [`RigidTool`]s (parry3d-f64) and against the surface triangles of
 //!    other bodies (refitted BVH, both directions). Each contact has a normal,
 //!    two tangents and a gap `δ₀` measured at the free-motion positions.
 //!    Self-collision is out of scope.
@@ -30,13 +30,13 @@ pub mod tool;
 use std::collections::HashMap;
 use std::time::Instant;
 
-use crate::body::{NodeConstraint, SoftBody};
+use crate::body::{NodeConstraint, DeformableBody};
 use crate::error::{Result, SoftTissueError, check_positive};
 use crate::math::Vec3;
 pub use compliance::{BodyCompliance, ComplianceMode, JacEntry};
 use detect::{TriangleBvh, boxes_overlap, closest_point_on_triangle};
 pub use lcp::{LcpReport, LcpSettings};
-pub use tool::{Pose, Tool, ToolShape};
+pub use tool::{Pose, RigidTool, ToolShape};
 
 /// Scene-wide contact settings.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -47,6 +47,8 @@ pub struct ContactSettings {
     pub alarm_distance: f64,
     /// Friction coefficient between deformable bodies.
     pub body_friction: f64,
+    /// Friction on or off for the whole scene (off: μ = 0 everywhere, no tangent rows).
+    pub friction: bool,
     /// Gauss–Seidel settings.
     pub lcp: LcpSettings,
     /// Maximum contact passes per step. After the first correction, detection
@@ -64,6 +66,7 @@ impl Default for ContactSettings {
             compliance: ComplianceMode::Factorized,
             alarm_distance: 1e-4,
             body_friction: 0.0,
+            friction: true,
             lcp: LcpSettings::default(),
             max_passes: 3,
             penetration_tolerance: 1e-6,
@@ -278,7 +281,7 @@ impl ContactSolver {
             .sum()
     }
 
-    fn prepare_slots(&mut self, bodies: &[&SoftBody]) {
+    fn prepare_slots(&mut self, bodies: &[&DeformableBody]) {
         self.slots.resize_with(bodies.len(), BodySlot::default);
         for (slot, b) in self.slots.iter_mut().zip(bodies) {
             if slot.id != b.id() {
@@ -300,7 +303,7 @@ impl ContactSolver {
     }
 
     /// Phase 1: finds contacts at the bodies' free-motion positions.
-    pub fn detect(&mut self, bodies: &[&SoftBody], tools: &[&Tool], h: f64) -> Result<()> {
+    pub fn detect(&mut self, bodies: &[&DeformableBody], tools: &[&RigidTool], h: f64) -> Result<()> {
         let t0 = Instant::now();
         check_positive("h", h)?;
         self.h = h;
@@ -367,7 +370,7 @@ impl ContactSolver {
                 self.vertex_triangle(bodies, a, b, margin);
             }
         }
-        if self.pass > 0 {
+        if self.pass > 0 || !self.settings.friction {
             for c in &mut self.contacts {
                 c.mu = 0.0;
                 c.slip = [0.0; 2];
@@ -381,7 +384,7 @@ impl ContactSolver {
         Ok(())
     }
 
-    fn vertex_triangle(&mut self, bodies: &[&SoftBody], a: usize, b: usize, margin: f64) {
+    fn vertex_triangle(&mut self, bodies: &[&DeformableBody], a: usize, b: usize, margin: f64) {
         let (xa, xb) = (bodies[a].positions(), bodies[b].positions());
         let (sa, sb) = (bodies[a].start_positions(), bodies[b].start_positions());
         let mu = self.settings.body_friction;
@@ -443,7 +446,7 @@ impl ContactSolver {
 
     /// Replaces the detected contacts with `contacts` (for custom detection and
     /// benchmarks); `h` is the step size used by the following phases.
-    pub fn set_contacts(&mut self, contacts: &[Contact], bodies: &[&SoftBody], h: f64) -> Result<()> {
+    pub fn set_contacts(&mut self, contacts: &[Contact], bodies: &[&DeformableBody], h: f64) -> Result<()> {
         check_positive("h", h)?;
         for c in contacts {
             let sides = std::iter::once(&c.a).chain(match &c.other {
@@ -484,7 +487,7 @@ impl ContactSolver {
     }
 
     /// Phase 2: builds `H` and `W = Σ_b h² H_b A_b⁻¹ H_bᵀ`.
-    pub fn build_compliance(&mut self, bodies: &[&SoftBody]) -> Result<()> {
+    pub fn build_compliance(&mut self, bodies: &[&DeformableBody]) -> Result<()> {
         let t0 = Instant::now();
         self.rows.clear();
         self.mu.clear();
@@ -553,7 +556,7 @@ impl ContactSolver {
         Ok(())
     }
 
-    fn key(&self, c: &Contact, bodies: &[&SoftBody]) -> ContactKey {
+    fn key(&self, c: &Contact, bodies: &[&DeformableBody]) -> ContactKey {
         let other = match c.other {
             ContactOther::Tool(t) => t as u64,
             ContactOther::Body(s) => (1 << 62) | bodies[s.body].id(),
@@ -562,7 +565,7 @@ impl ContactSolver {
     }
 
     /// Phase 3: projected Gauss–Seidel on `W λ + δ₀`.
-    pub fn solve_lcp(&mut self, bodies: &[&SoftBody]) -> LcpReport {
+    pub fn solve_lcp(&mut self, bodies: &[&DeformableBody]) -> LcpReport {
         let t0 = Instant::now();
         let m = self.delta0.len();
         self.lambda.clear();
@@ -606,7 +609,7 @@ impl ContactSolver {
     }
 
     /// Phase 4: applies `Δx = h² A⁻¹ Hᵀ λ` to every body and sets tool reactions.
-    pub fn correct(&mut self, bodies: &mut [&mut SoftBody], tools: &mut [&mut Tool]) -> Result<()> {
+    pub fn correct(&mut self, bodies: &mut [&mut DeformableBody], tools: &mut [&mut RigidTool]) -> Result<()> {
         let t0 = Instant::now();
         for (bi, body) in bodies.iter_mut().enumerate() {
             let Some(slot) = self.slots.get_mut(bi) else {
@@ -652,39 +655,70 @@ impl ContactSolver {
     /// frictionless passes while a vertex still penetrates (see
     /// [`ContactSettings::max_passes`]). Skips everything after detection when
     /// there is no contact.
-    pub fn step(&mut self, bodies: &mut [&mut SoftBody], tools: &mut [&mut Tool], h: f64) -> Result<()> {
+    pub fn step(
+        &mut self,
+        bodies: &mut [&mut DeformableBody],
+        tools: &mut [&mut RigidTool],
+        h: f64,
+    ) -> Result<()> {
         self.pass = 0;
-        let result = self.run_passes(bodies, tools, h);
-        self.pass = 0;
-        result
+        {
+            let b: Vec<&DeformableBody> = bodies.iter().map(|b| &**b).collect();
+            let t: Vec<&RigidTool> = tools.iter().map(|t| &**t).collect();
+            self.detect(&b, &t, h)?;
+            if self.contacts.is_empty() {
+                self.clear_forces(tools);
+                return Ok(());
+            }
+            self.build_compliance(&b)?;
+            self.solve_lcp(&b);
+        }
+        self.correct(bodies, tools)?;
+        self.refine(bodies, tools, h)
     }
 
-    fn run_passes(&mut self, bodies: &mut [&mut SoftBody], tools: &mut [&mut Tool], h: f64) -> Result<()> {
-        for pass in 0..self.settings.max_passes {
-            self.pass = pass;
-            {
-                let b: Vec<&SoftBody> = bodies.iter().map(|b| &**b).collect();
-                let t: Vec<&Tool> = tools.iter().map(|t| &**t).collect();
-                self.detect(&b, &t, h)?;
-                if pass > 0 && self.report.max_penetration <= self.settings.penetration_tolerance {
-                    break;
-                }
-                if self.contacts.is_empty() {
-                    if pass == 0 {
-                        self.previous.clear();
-                        for t in tools.iter_mut() {
-                            t.set_reaction(Vec3::zeros(), Vec3::zeros());
-                        }
-                    }
-                    break;
-                }
-                self.build_compliance(&b)?;
-                self.solve_lcp(&b);
-            }
-            self.correct(bodies, tools)?;
-            self.report.passes = pass + 1;
+    /// Forgets warm-start forces and zeroes tool reactions (a step without contact).
+    pub fn clear_forces(&mut self, tools: &mut [&mut RigidTool]) {
+        self.previous.clear();
+        self.lambda.clear();
+        for s in &mut self.slots {
+            s.entries.clear();
         }
-        Ok(())
+        for t in tools.iter_mut() {
+            t.set_reaction(Vec3::zeros(), Vec3::zeros());
+        }
+    }
+
+    /// Runs the extra frictionless passes after the first correction, while a
+    /// vertex still penetrates deeper than the tolerance (see
+    /// [`ContactSettings::max_passes`]).
+    pub fn refine(
+        &mut self,
+        bodies: &mut [&mut DeformableBody],
+        tools: &mut [&mut RigidTool],
+        h: f64,
+    ) -> Result<()> {
+        self.report.passes = 1;
+        let result = (|| {
+            for pass in 1..self.settings.max_passes {
+                self.pass = pass;
+                {
+                    let b: Vec<&DeformableBody> = bodies.iter().map(|b| &**b).collect();
+                    let t: Vec<&RigidTool> = tools.iter().map(|t| &**t).collect();
+                    self.detect(&b, &t, h)?;
+                    if self.report.max_penetration <= self.settings.penetration_tolerance {
+                        break;
+                    }
+                    self.build_compliance(&b)?;
+                    self.solve_lcp(&b);
+                }
+                self.correct(bodies, tools)?;
+                self.report.passes = pass + 1;
+            }
+            Ok(())
+        })();
+        self.pass = 0;
+        result
     }
 }
 

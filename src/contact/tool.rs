@@ -1,10 +1,10 @@
 //! Rigid, kinematically driven tools.
 //!
-//! A [`Tool`] is a rigid shape with a pose that the application moves (for
+//! A [`RigidTool`] is a rigid shape with a pose that the application moves (for
 //! example from a haptic device or a script). Shapes are validated on
 //! creation and turned into parry3d-f64 shapes; point queries run in the
 //! tool's local frame. The contact solver writes the reaction force and torque
-//! the tissue exerts on the tool ([`Tool::reaction`]) for haptic output.
+//! the tissue exerts on the tool ([`RigidTool::reaction`]) for haptic output.
 
 use std::sync::Arc;
 
@@ -160,7 +160,7 @@ impl ToolShape {
 
 /// A rigid, kinematic tool (see the module docs).
 #[derive(Clone)]
-pub struct Tool {
+pub struct RigidTool {
     shape: ToolShape,
     parry: SharedShape,
     pose: Pose,
@@ -170,9 +170,9 @@ pub struct Tool {
     reaction_torque: Vec3,
 }
 
-impl std::fmt::Debug for Tool {
+impl std::fmt::Debug for RigidTool {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("Tool")
+        f.debug_struct("RigidTool")
             .field("shape", &self.shape)
             .field("pose", &self.pose)
             .field("friction", &self.friction)
@@ -200,7 +200,7 @@ fn check_pose(p: &Pose) -> Result<()> {
     Ok(())
 }
 
-impl Tool {
+impl RigidTool {
     /// A tool of `shape` at `pose`, frictionless.
     pub fn new(shape: ToolShape, pose: Pose) -> Result<Self> {
         check_pose(&pose)?;
@@ -250,7 +250,7 @@ impl Tool {
     }
 
     /// Moves the tool (kinematically) to `pose`. The motion since the last
-    /// [`Tool::end_step`] drives friction.
+    /// [`RigidTool::end_step`] drives friction.
     pub fn set_pose(&mut self, pose: Pose) -> Result<()> {
         check_pose(&pose)?;
         self.pose = pose;

@@ -1,0 +1,199 @@
+//! Headless app tests of `SoftTissuePlugin` (MinimalPlugins + manual time steps).
+
+use std::sync::atomic::Ordering;
+use std::time::Duration;
+
+use bevy::diagnostic::DiagnosticsStore;
+use bevy::prelude::*;
+use bevy::time::TimeUpdateStrategy;
+use bevy_soft_tissue::contact::ToolShape;
+use bevy_soft_tissue::material::Material;
+use bevy_soft_tissue::mesh::generate;
+use bevy_soft_tissue::plugin::{SoftBody, SoftTissueConfig, SoftTissueDiagnostics, Tool, ToolReaction};
+use bevy_soft_tissue::prelude::{BodyContacts, v3};
+use bevy_soft_tissue::{SoftTissuePlugin, SoftTissueSystems};
+
+const H: f64 = 0.01;
+
+fn app(config: SoftTissueConfig) -> App {
+    let mut app = App::new();
+    app.add_plugins((MinimalPlugins, SoftTissuePlugin::default().with_config(config)))
+        .insert_resource(TimeUpdateStrategy::ManualDuration(Duration::from_secs_f64(H)));
+    app
+}
+
+fn steps(app: &mut App, n: u64) {
+    let start = app.world().resource::<SoftTissueDiagnostics>().steps;
+    let mut guard = 0;
+    while app.world().resource::<SoftTissueDiagnostics>().steps < start + n {
+        app.update();
+        guard += 1;
+        assert!(guard < 10 * n + 10, "fixed steps are not running");
+    }
+}
+
+fn cube(size: f64, cells: usize, z0: f64) -> SoftBody {
+    let mesh = generate::box_mesh(v3(-size, -size, z0), v3(size, size, z0 + 2.0 * size), [cells; 3]).unwrap();
+    SoftBody::new(mesh, Material::new(1000.0, 3e4, 0.3).with_damping(2.0, 0.0)).unwrap()
+}
+
+#[test]
+fn body_falls_onto_fixed_tool_and_stays_above_it() {
+    let mut app = app(SoftTissueConfig {
+        timestep: H,
+        gravity: Some(bevy::math::DVec3::new(0.0, 0.0, -9.81)),
+        ..Default::default()
+    });
+    let body = app.world_mut().spawn(cube(4e-3, 3, 1e-3)).id();
+    let tool = app
+        .world_mut()
+        .spawn((
+            Tool::new(ToolShape::Box { half_extents: v3(0.05, 0.05, 0.005) }, 0.3).unwrap(),
+            Transform::from_xyz(0.0, 0.0, -0.005),
+        ))
+        .id();
+    steps(&mut app, 80);
+    let w = app.world();
+    let b = w.get::<SoftBody>(body).unwrap();
+    let min_z = b.positions().iter().map(|p| p.z).fold(f64::INFINITY, f64::min);
+    let tol = 0.01 * b.mesh().min_edge_length();
+    assert!(min_z >= -tol, "body sank into the tool: {min_z}");
+    assert!(min_z < 1e-3 - 1e-4, "body did not fall: {min_z}");
+    let contacts = w.get::<BodyContacts>(body).unwrap();
+    assert!(contacts.count > 0);
+    let reaction = w.get::<ToolReaction>(tool).unwrap();
+    // At rest the tool carries the body's weight.
+    let weight = b.mass().iter().sum::<f64>() * 9.81;
+    assert!((reaction.force.z + weight).abs() < 0.1 * weight, "reaction {:?} vs weight {weight}", reaction.force);
+    let d = w.resource::<SoftTissueDiagnostics>();
+    assert!(d.detect_runs > 0 && d.lcp_solves > 0);
+    assert_eq!(d.errors, 0);
+    // Bevy's store has the measurements.
+    let store = w.resource::<DiagnosticsStore>();
+    let step = store
+        .get(&bevy_soft_tissue::plugin::diagnostics_paths::STEP)
+        .and_then(|d| d.value())
+        .unwrap();
+    assert!(step > 0.0);
+}
+
+#[test]
+fn despawning_a_body_stops_its_worker() {
+    let mut app = app(SoftTissueConfig { timestep: H, ..Default::default() });
+    let e = app.world_mut().spawn(cube(4e-3, 3, 0.0)).id();
+    steps(&mut app, 3);
+    let flag = app
+        .world()
+        .get::<SoftBody>(e)
+        .unwrap()
+        .preconditioner()
+        .worker()
+        .unwrap()
+        .alive_flag();
+    assert!(flag.load(Ordering::SeqCst));
+    app.world_mut().despawn(e);
+    steps(&mut app, 1);
+    assert!(!flag.load(Ordering::SeqCst), "worker still alive after despawn");
+    assert_eq!(app.world().resource::<SoftTissueDiagnostics>().errors, 0);
+}
+
+#[test]
+fn changing_the_material_at_runtime() {
+    let run = |young: f64| {
+        let mut app = app(SoftTissueConfig {
+            timestep: H,
+            gravity: Some(bevy::math::DVec3::new(0.0, 0.0, -9.81)),
+            ..Default::default()
+        });
+        let mesh = generate::box_mesh(v3(0.0, -2e-3, -2e-3), v3(0.02, 2e-3, 2e-3), [10, 2, 2]).unwrap();
+        let e = app
+            .world_mut()
+            .spawn((
+                SoftBody::new(mesh.clone(), Material::new(1000.0, 1e6, 0.3).with_damping(5.0, 0.0)).unwrap(),
+                bevy_soft_tissue::plugin::FixedNodes((0..mesh.num_vertices()).filter(|&i| mesh.positions()[i].x < 1e-9).collect()),
+            ))
+            .id();
+        steps(&mut app, 2);
+        app.world_mut()
+            .get_mut::<SoftBody>(e)
+            .unwrap()
+            .set_material(Material::new(1000.0, young, 0.3).with_damping(5.0, 0.0))
+            .unwrap();
+        steps(&mut app, 150);
+        let b = app.world().get::<SoftBody>(e).unwrap();
+        b.positions()
+            .iter()
+            .zip(b.mesh().positions())
+            .map(|(p, p0)| p0.z - p.z)
+            .fold(f64::NEG_INFINITY, f64::max)
+    };
+    let (stiff, soft) = (run(1e6), run(1e5));
+    assert!(soft > 3.0 * stiff, "soft sag {soft}, stiff sag {stiff}");
+}
+
+#[test]
+fn absent_effects_cost_nothing() {
+    // One body, no tool, no gravity, no damping coefficients.
+    let mut app = app(SoftTissueConfig { timestep: H, ..Default::default() });
+    let mesh = generate::box_mesh(v3(0.0, 0.0, 0.0), v3(0.01, 0.01, 0.01), [2, 2, 2]).unwrap();
+    app.world_mut().spawn(SoftBody::new(mesh, Material::new(1000.0, 1e4, 0.3)).unwrap());
+    steps(&mut app, 10);
+    let d = app.world().resource::<SoftTissueDiagnostics>().clone();
+    assert_eq!(
+        (d.detect_runs, d.compliance_builds, d.lcp_solves, d.friction_rows, d.damping_bodies, d.gravity_bodies, d.gpu_dispatches),
+        (0, 0, 0, 0, 0, 0, 0),
+        "{d:?}"
+    );
+    // A frictionless tool far away: detection runs, but finds nothing, so no compliance or LCP.
+    app.world_mut().spawn((
+        Tool::new(ToolShape::Sphere { radius: 1e-3 }, 0.0).unwrap(),
+        Transform::from_xyz(1.0, 0.0, 0.0),
+    ));
+    steps(&mut app, 5);
+    let d = app.world().resource::<SoftTissueDiagnostics>().clone();
+    assert!(d.detect_runs > 0);
+    assert_eq!((d.compliance_builds, d.lcp_solves, d.friction_rows), (0, 0, 0));
+    // Touching frictionless tool: contacts, no friction rows.
+    let mut q = app.world_mut().query::<(&Tool, &mut Transform)>();
+    for (_, mut t) in q.iter_mut(app.world_mut()) {
+        t.translation = Vec3::new(0.005, 0.005, 0.0109);
+    }
+    steps(&mut app, 5);
+    let d = app.world().resource::<SoftTissueDiagnostics>().clone();
+    assert!(d.compliance_builds > 0 && d.lcp_solves > 0, "{d:?}");
+    assert_eq!(d.friction_rows, 0);
+    // Damping and gravity switched on show up in the counters.
+    app.world_mut().resource_mut::<SoftTissueConfig>().gravity = Some(bevy::math::DVec3::new(0.0, 0.0, -9.81));
+    steps(&mut app, 2);
+    assert!(app.world().resource::<SoftTissueDiagnostics>().gravity_bodies > 0);
+    assert_eq!(app.world().resource::<SoftTissueDiagnostics>().errors, 0);
+}
+
+/// A user system in `FixedUpdate` moves the tool; detection sees the new pose the same step.
+#[test]
+fn user_systems_move_tools_before_detection() {
+    #[derive(Resource, Default)]
+    struct Seen(Vec<f32>);
+    let mut app = app(SoftTissueConfig { timestep: H, ..Default::default() });
+    app.init_resource::<Seen>();
+    app.add_systems(FixedUpdate, |mut q: Query<&mut Transform, With<Tool>>| {
+        for mut t in &mut q {
+            t.translation.x += 1.0;
+        }
+    });
+    app.add_systems(
+        FixedPostUpdate,
+        (|q: Query<&Tool>, mut seen: ResMut<Seen>| {
+            for t in &q {
+                seen.0.push(t.pose().translation.vector.x as f32);
+            }
+        })
+        .after(SoftTissueSystems::Detect)
+        .before(SoftTissueSystems::Compliance),
+    );
+    app.world_mut().spawn(cube(1e-3, 1, 0.0));
+    app.world_mut().spawn((Tool::new(ToolShape::Sphere { radius: 1e-3 }, 0.0).unwrap(), Transform::from_xyz(10.0, 0.0, 0.0)));
+    steps(&mut app, 3);
+    let seen = &app.world().resource::<Seen>().0;
+    assert_eq!(seen[..3], [11.0, 12.0, 13.0]);
+}
