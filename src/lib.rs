@@ -32,6 +32,8 @@
 //! }
 //! ```
 
+#![allow(clippy::needless_range_loop)] // index loops mirror the math of the kernels
+
 pub mod body;
 pub mod contact;
 pub mod error;
@@ -41,6 +43,7 @@ pub mod math;
 pub mod mesh;
 pub mod plugin;
 pub mod scene;
+pub mod scenes;
 pub mod solver;
 
 pub use plugin::{SoftTissuePlugin, SoftTissueSystems};

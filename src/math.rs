@@ -114,7 +114,7 @@ pub fn polar_rotation_fast(f: &Mat3) -> Mat3 {
             return x;
         }
         d = x.determinant();
-        if !(d > 0.0) {
+        if d.is_nan() || d <= 0.0 {
             break;
         }
     }

@@ -1,6 +1,8 @@
 //! Acceptance tests of the deformation core: meshes, elements, assembly,
 //! LDLᵀ, preconditioners, conjugate gradient and the implicit step.
 
+#![allow(clippy::needless_range_loop)]
+
 use bevy_soft_tissue::fem::Element;
 use bevy_soft_tissue::fem::assembly::{BlockCsr, BlockPattern};
 use bevy_soft_tissue::math::polar_rotation;

@@ -197,3 +197,18 @@ fn user_systems_move_tools_before_detection() {
     let seen = &app.world().resource::<Seen>().0;
     assert_eq!(seen[..3], [11.0, 12.0, 13.0]);
 }
+
+#[test]
+fn cataract_scene_runs_headless() {
+    use bevy_soft_tissue::scenes::{cataract::CataractParams, run_headless};
+    let params = CataractParams::coarse();
+    let config = SoftTissueConfig { timestep: 1.0 / 60.0, ..Default::default() };
+    let s = run_headless(&params, config, 240).unwrap();
+    println!("{s:?}");
+    assert!(s.max_penetration <= s.tolerance, "penetration {} > {}", s.max_penetration, s.tolerance);
+    assert!(s.contacts.1 > 10, "the vectis never engaged the lens: {:?}", s.contacts);
+    // The lens moves toward the incision (+y, +z).
+    let d = bevy_soft_tissue::scenes::cataract::incision_direction(&params);
+    let moved = (s.lens_center.1 - s.lens_center.0).dot(&d);
+    assert!(moved > 0.5e-3, "lens moved only {moved} m toward the incision");
+}

@@ -330,7 +330,8 @@ impl ContactSolver {
                         continue;
                     }
                     self.report.pairs_tested += 1;
-                    let Some(prox) = tool.proximity(&p, margin) else {
+                    // Search deep enough to find the surface from anywhere inside the tool.
+                    let Some(prox) = tool.proximity(&p, margin + tool.inner_radius()) else {
                         continue;
                     };
                     if prox.distance >= margin {
@@ -416,7 +417,14 @@ impl ContactSolver {
             };
             let q = xb[i] * w[0] + xb[j] * w[1] + xb[k] * w[2];
             let gap = (p - q).dot(&n);
-            if gap >= margin || gap < -margin.max(0.5 * (xb[j] - xb[i]).norm()) {
+            // Vertices deeper than twice the alarm distance are not trusted, and a
+            // negative gap counts only when the vertex really lies in the
+            // tetrahedron under the triangle: near a cut (an incision's wall) the
+            // closest triangle's plane can put an outside vertex "behind" it.
+            if gap >= margin || gap < -2.0 * margin {
+                continue;
+            }
+            if gap < 0.0 && !inside_tet(&p, bodies[b], bodies[b].surface().triangle_tets[t]) {
                 continue;
             }
             let tg = tangents(&n);
@@ -574,9 +582,8 @@ impl ContactSolver {
             for (ci, c) in self.contacts.iter().enumerate() {
                 if let Some(prev) = self.previous.get(&self.key(c, bodies)) {
                     let r = self.rows[ci];
-                    for k in 0..(self.rows[ci + 1] - r) {
-                        self.lambda[r + k] = prev[k];
-                    }
+                    let k = self.rows[ci + 1] - r;
+                    self.lambda[r..r + k].copy_from_slice(&prev[..k]);
                 }
             }
         }
@@ -594,9 +601,8 @@ impl ContactSolver {
         for ci in 0..self.contacts.len() {
             let r = self.rows[ci];
             let mut f = [0.0; 3];
-            for k in 0..(self.rows[ci + 1] - r) {
-                f[k] = self.lambda[r + k];
-            }
+            let k = self.rows[ci + 1] - r;
+            f[..k].copy_from_slice(&self.lambda[r..r + k]);
             if self.pass == 0 {
                 let key = self.key(&self.contacts[ci], bodies);
                 self.previous.insert(key, f);
@@ -719,6 +725,22 @@ impl ContactSolver {
         })();
         self.pass = 0;
         result
+    }
+}
+
+/// Whether `p` lies in tetrahedron `t` of `body` at its current positions.
+fn inside_tet(p: &Vec3, body: &DeformableBody, t: usize) -> bool {
+    let tet = body.mesh().tets()[t];
+    let x = body.positions();
+    let [a, b, c, d] = tet.map(|v| x[v]);
+    let m = crate::math::Mat3::from_columns(&[b - a, c - a, d - a]);
+    match m.try_inverse() {
+        Some(inv) => {
+            let l = inv * (p - a);
+            let eps = -1e-9;
+            l.x >= eps && l.y >= eps && l.z >= eps && l.x + l.y + l.z <= 1.0 - eps
+        }
+        None => false,
     }
 }
 

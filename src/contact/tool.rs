@@ -88,7 +88,7 @@ fn check_not_flat(points: &[Vec3]) -> Result<()> {
     let n = (p1 - p0).cross(&(p2 - p0));
     let p3 = far(&|p| n.dot(&(p - p0)).abs());
     let vol = n.dot(&(p3 - p0)).abs();
-    if !(vol > 1e-9 * ext.powi(3)) {
+    if vol.is_nan() || vol <= 1e-9 * ext.powi(3) {
         return Err(bad("convex hull is degenerate (coplanar or coincident points)"));
     }
     Ok(())
@@ -272,6 +272,14 @@ impl RigidTool {
     pub fn displacement_at(&self, p: &Vec3) -> Vec3 {
         let local = self.pose.inverse_transform_point(&Point3::from(*p));
         p - self.prev_pose.transform_point(&local).coords
+    }
+
+    /// Smallest half extent of the shape's local bounds: no interior point is
+    /// farther than this from the surface.
+    pub fn inner_radius(&self) -> f64 {
+        let b = self.parry.compute_local_aabb();
+        let h = (from_p(b.maxs) - from_p(b.mins)) * 0.5;
+        h.min()
     }
 
     /// Axis-aligned bounds in world frame, grown by `margin`.

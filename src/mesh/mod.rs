@@ -62,6 +62,8 @@ pub struct Surface {
     pub triangles: Vec<[usize; 3]>,
     /// For each volume vertex, its surface index, or `u32::MAX` for interior vertices.
     pub volume_to_surface: Vec<u32>,
+    /// The tetrahedron each triangle bounds.
+    pub triangle_tets: Vec<usize>,
 }
 
 impl Surface {
@@ -221,28 +223,37 @@ impl TetMesh {
         self
     }
 
+    /// Returns a copy rotated by `rotation` about the origin (orientation is kept).
+    pub fn rotated(mut self, rotation: &nalgebra::Rotation3<f64>) -> Self {
+        for p in &mut self.positions {
+            *p = rotation * *p;
+        }
+        self
+    }
+
     /// Extracts the outward boundary triangles (faces used by exactly one tetrahedron).
     pub fn surface(&self) -> Surface {
-        let mut count: HashMap<[usize; 3], (usize, [usize; 3])> = HashMap::new();
-        for tet in &self.tets {
+        let mut count: HashMap<[usize; 3], (usize, [usize; 3], usize)> = HashMap::new();
+        for (ti, tet) in self.tets.iter().enumerate() {
             for f in TET_FACES {
                 let tri = [tet[f[0]], tet[f[1]], tet[f[2]]];
                 let mut key = tri;
                 key.sort_unstable();
-                count.entry(key).and_modify(|e| e.0 += 1).or_insert((1, tri));
+                count.entry(key).and_modify(|e| e.0 += 1).or_insert((1, tri, ti));
             }
         }
-        let mut boundary: Vec<[usize; 3]> = count
+        let mut boundary: Vec<([usize; 3], usize)> = count
             .into_values()
-            .filter(|(n, _)| *n == 1)
-            .map(|(_, t)| t)
+            .filter(|(n, _, _)| *n == 1)
+            .map(|(_, t, ti)| (t, ti))
             .collect();
         boundary.sort_unstable();
+        let triangle_tets = boundary.iter().map(|b| b.1).collect();
         let mut volume_to_surface = vec![u32::MAX; self.positions.len()];
         let mut vertices = Vec::new();
         let triangles = boundary
             .iter()
-            .map(|tri| {
+            .map(|(tri, _)| {
                 tri.map(|v| {
                     if volume_to_surface[v] == u32::MAX {
                         volume_to_surface[v] = vertices.len() as u32;
@@ -256,6 +267,7 @@ impl TetMesh {
             vertices,
             triangles,
             volume_to_surface,
+            triangle_tets,
         }
     }
 

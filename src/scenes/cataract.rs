@@ -1,0 +1,251 @@
+//! The cataract (MSICS) nucleus-extraction scene.
+//!
+//! - **Eye**: a scleral shell, outer radius 12 mm, 1 mm thick, with a
+//!   scleral-tunnel slit incision 6.5 mm long at 30° from the anterior pole
+//!   (+z), on the +y side. The posterior third is fixed.
+//! - **Lens**: an ellipsoid 9.5 × 9.5 × 4.5 mm, nucleus 5× stiffer than the
+//!   periphery (smooth transition), inside the eye behind the incision, turned
+//!   so that its thin edge faces the slit (the nucleus leaves edge first).
+//! - **Vectis**: a rigid, spoon-like blade (closed triangle mesh) with friction
+//!   against the lens, cradling the lens's flat face and drawn out toward the
+//!   incision along [`ExtractionPath`], pressing lightly so friction carries the
+//!   lens along.
+//!
+//! Mesh sizes default to about the paper's (lens 1183 vertices / 5184 tets,
+//! eye ≈ 1200 / ≈ 3550). [`CataractParams::coarse`] gives a light version for
+//! tests. Units are SI (metres, pascals, kilograms).
+
+use nalgebra::{Isometry3, Translation3, UnitQuaternion};
+
+use crate::body::{BodySettings, DeformableBody};
+use crate::contact::{ContactSettings, Pose, RigidTool, ToolShape};
+use crate::error::Result;
+use crate::material::{Material, StiffnessField, Transition};
+use crate::math::{Vec3, v3};
+use crate::mesh::generate::{self, EyeShell, Incision, LENS_RADII};
+
+/// Parameters of the scene.
+#[derive(Debug, Clone, PartialEq)]
+pub struct CataractParams {
+    /// Lens resolution (cells along its long axis).
+    pub lens_cells: usize,
+    /// Eye shell mesh.
+    pub eye: EyeShell,
+    /// Young's modulus of the lens periphery, Pa.
+    pub lens_young: f64,
+    /// Nucleus / periphery stiffness ratio.
+    pub nucleus_factor: f64,
+    /// Young's modulus of the sclera, Pa.
+    pub eye_young: f64,
+    /// Friction between vectis and tissue.
+    pub vectis_friction: f64,
+    /// Distance of the lens centre from the eye centre, toward the incision, metres.
+    pub lens_offset: f64,
+}
+
+impl Default for CataractParams {
+    fn default() -> Self {
+        Self {
+            lens_cells: 12,
+            eye: EyeShell {
+                incision: Some(Incision {
+                    width: 1.6e-3,
+                    ..Default::default()
+                }),
+                ..Default::default()
+            },
+            lens_young: 3e3,
+            nucleus_factor: 5.0,
+            eye_young: 30e3,
+            vectis_friction: 0.5,
+            lens_offset: 5.4e-3,
+        }
+    }
+}
+
+impl CataractParams {
+    /// A coarse version (≈ 300-node lens, ≈ 300-node eye) for tests.
+    pub fn coarse() -> Self {
+        let mut p = Self {
+            lens_cells: 6,
+            ..Default::default()
+        };
+        p.eye.cells = 6;
+        p
+    }
+}
+
+/// The frame of the incision: `(e_r, e_θ)`, the unit direction from the eye
+/// centre to the incision and the polar tangent there (across the slit).
+pub fn incision_frame(p: &CataractParams) -> (Vec3, Vec3) {
+    let inc = p.eye.incision.unwrap_or_default();
+    let (st, ct) = inc.polar.sin_cos();
+    let (sa, ca) = inc.azimuth.sin_cos();
+    (v3(st * ca, st * sa, ct), v3(ct * ca, ct * sa, -st))
+}
+
+/// Rotation taking the lens's thin axis (z) to `e_θ`, i.e. its edge toward the incision.
+pub fn lens_rotation(p: &CataractParams) -> nalgebra::Rotation3<f64> {
+    let (er, et) = incision_frame(p);
+    let ex = et.cross(&er);
+    nalgebra::Rotation3::from_matrix_unchecked(crate::math::Mat3::from_columns(&[ex, -er, et]))
+}
+
+/// Centre of the lens.
+pub fn lens_center(p: &CataractParams) -> Vec3 {
+    incision_frame(p).0 * p.lens_offset
+}
+
+/// Lens and eye materials. The lens material is for the lens mesh in its own
+/// (unrotated, centred) frame; [`build`] turns it into per-element values.
+pub fn materials(p: &CataractParams) -> (Material, Material) {
+    let lens = Material::new(1050.0, p.lens_young, 0.45)
+        .with_stiffness(StiffnessField::Radial {
+            center: Vec3::zeros(),
+            radii: Vec3::from(LENS_RADII),
+            core_radius: 0.6,
+            factor: p.nucleus_factor,
+            transition: Transition::Smooth { width: 0.2 },
+        })
+        .with_damping(2.0, 0.005);
+    let eye = Material::new(1050.0, p.eye_young, 0.45).with_damping(2.0, 0.005);
+    (lens, eye)
+}
+
+/// The vectis blade: a flattened, slightly curved spoon, 4 mm wide, 8 mm long,
+/// 0.8 mm thick, in its local frame (long axis +y, concave side +z).
+pub fn vectis_shape() -> ToolShape {
+    let (nu, nv) = (16usize, 10usize);
+    let (a, b, c) = (2.0e-3, 4.0e-3, 0.4e-3);
+    let mut vertices = vec![v3(0.0, 0.0, -c)];
+    for j in 1..nv {
+        let th = std::f64::consts::PI * j as f64 / nv as f64;
+        for i in 0..nu {
+            let ph = 2.0 * std::f64::consts::PI * i as f64 / nu as f64;
+            let (x, y, z) = (a * th.sin() * ph.cos(), b * th.sin() * ph.sin(), -c * th.cos());
+            vertices.push(v3(x, y, z));
+        }
+    }
+    vertices.push(v3(0.0, 0.0, c));
+    // Bend: the spoon's tip (y > 0) and heel curve upward.
+    for p in &mut vertices {
+        p.z += 0.08 * (p.y * p.y) / b;
+    }
+    let mut indices = Vec::new();
+    let ring = |j: usize, i: usize| (1 + (j - 1) * nu + i % nu) as u32;
+    for i in 0..nu {
+        indices.push([0, ring(1, i + 1), ring(1, i)]);
+    }
+    for j in 1..nv - 1 {
+        for i in 0..nu {
+            let (p, q, r, s) = (ring(j, i), ring(j, i + 1), ring(j + 1, i), ring(j + 1, i + 1));
+            indices.push([p, q, s]);
+            indices.push([p, s, r]);
+        }
+    }
+    let top = (vertices.len() - 1) as u32;
+    for i in 0..nu {
+        indices.push([top, ring(nv - 1, i), ring(nv - 1, i + 1)]);
+    }
+    ToolShape::TriMesh { vertices, indices }
+}
+
+/// Direction from the lens centre to the incision.
+pub fn incision_direction(p: &CataractParams) -> Vec3 {
+    incision_frame(p).0
+}
+
+/// The scripted extraction: the vectis starts under the lens, rises to engage
+/// it, then draws it toward and out through the incision. Poses are for a
+/// time in seconds; after the last key the vectis stays.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ExtractionPath {
+    keys: Vec<(f64, Vec3)>,
+    rotation: UnitQuaternion<f64>,
+}
+
+impl ExtractionPath {
+    /// The default path for `p`: the blade faces the lens's rim from the side
+    /// opposite the incision and pushes it toward and into the slit.
+    pub fn new(p: &CataractParams) -> Self {
+        let (er, et) = incision_frame(p);
+        let c = lens_center(p);
+        let behind = c - er * (LENS_RADII[0] + 0.4e-3 + 0.4e-3);
+        let blade = crate::math::Mat3::from_columns(&[et.cross(&er), et, er]);
+        Self {
+            keys: vec![
+                (0.0, behind),
+                (0.5, behind + er * 0.3e-3),
+                (4.5, behind + er * 4.0e-3),
+                (8.0, behind + er * 7.0e-3),
+            ],
+            rotation: UnitQuaternion::from_rotation_matrix(&nalgebra::Rotation3::from_matrix_unchecked(blade)),
+        }
+    }
+
+    /// Duration of the scripted motion, seconds.
+    pub fn duration(&self) -> f64 {
+        self.keys.last().map(|k| k.0).unwrap_or(0.0)
+    }
+
+    /// Pose at time `t` (smooth interpolation between keys).
+    pub fn pose(&self, t: f64) -> Pose {
+        let mut k = 0;
+        while k + 1 < self.keys.len() && self.keys[k + 1].0 <= t {
+            k += 1;
+        }
+        let p = if k + 1 >= self.keys.len() {
+            self.keys[self.keys.len() - 1].1
+        } else {
+            let (t0, p0) = self.keys[k];
+            let (t1, p1) = self.keys[k + 1];
+            let u = ((t - t0) / (t1 - t0)).clamp(0.0, 1.0);
+            p0 + (p1 - p0) * (u * u * (3.0 - 2.0 * u))
+        };
+        // Blade normal (local z) along e_r against the lens rim, long axis along e_θ.
+        Isometry3::from_parts(Translation3::from(p), self.rotation)
+    }
+}
+
+/// The two bodies, the vectis and the extraction path.
+#[derive(Debug)]
+pub struct CataractScene {
+    /// The lens (nucleus 5× stiffer).
+    pub lens: DeformableBody,
+    /// The eye shell, posterior part fixed.
+    pub eye: DeformableBody,
+    /// The vectis.
+    pub vectis: RigidTool,
+    /// Scripted motion of the vectis.
+    pub path: ExtractionPath,
+    /// Contact settings that suit the scene's scale.
+    pub contact: ContactSettings,
+}
+
+/// Builds the scene.
+pub fn build(p: &CataractParams, settings: BodySettings) -> Result<CataractScene> {
+    let (lens_mat, eye_mat) = materials(p);
+    let local = generate::ellipsoid(LENS_RADII, p.lens_cells)?;
+    let young = lens_mat.element_young(&local)?;
+    let lens_mesh = local.rotated(&lens_rotation(p)).translated(lens_center(p));
+    let lens_mat = lens_mat.with_stiffness(StiffnessField::PerElement(young));
+    let lens = DeformableBody::new(lens_mesh, lens_mat, settings)?;
+    let eye_mesh = generate::eye_shell(&p.eye)?;
+    let mut eye = DeformableBody::new(eye_mesh, eye_mat, settings)?;
+    let r = p.eye.radius;
+    eye.fix_where(|x| x.z < -0.35 * r);
+    let path = ExtractionPath::new(p);
+    let vectis = RigidTool::new(vectis_shape(), path.pose(0.0))?.with_friction(p.vectis_friction)?;
+    let contact = ContactSettings {
+        alarm_distance: 0.4e-3,
+        body_friction: 0.1,
+        ..Default::default()
+    };
+    Ok(CataractScene {
+        lens,
+        eye,
+        vectis,
+        path,
+        contact,
+    })
+}
