@@ -7,7 +7,8 @@
 //! cargo run --release --example core_headless -- --steps 300 --preconditioner async
 //! ```
 //! Preconditioners: `jacobi`, `exact`, `periodic1`, `periodic4`, `periodic16`, `async`
-//! (default: all of them).
+//! (default: all of them, plus `frozen`, a factor never refreshed after the first
+//! step: the cost of a step with no factorization anywhere, to compare `async` with).
 
 use bevy_soft_tissue::mesh::generate::LENS_RADII;
 use bevy_soft_tissue::prelude::*;
@@ -53,6 +54,7 @@ fn run(kind: PreconditionerKind, steps: usize) -> Result<()> {
     let (mut asm, mut fac, mut pre, mut cg, mut total, mut its, mut ages) =
         (vec![], vec![], vec![], vec![], vec![], vec![], vec![]);
     let mut unconverged = 0;
+    let (mut in_flight, mut idle) = (vec![], vec![]);
     for s in 0..steps {
         let t = (s + 1) as f64 * 0.02;
         let a = 0.5 * (1.0 - (t * 2.0).cos());
@@ -61,9 +63,12 @@ fn run(kind: PreconditionerKind, steps: usize) -> Result<()> {
             let p = mesh.positions()[i];
             body.drive_node(i, rot * v3(p.x, p.y, p.z - a * 1.5e-3))?;
         }
+        let busy = body.preconditioner().worker().is_some_and(|w| w.in_flight());
         let t0 = std::time::Instant::now();
         let r = body.step(0.02)?;
-        total.push(t0.elapsed().as_secs_f64() * 1e3);
+        let ms = t0.elapsed().as_secs_f64() * 1e3;
+        total.push(ms);
+        if busy { in_flight.push(ms) } else { idle.push(ms) }
         asm.push(r.timings.assemble * 1e3);
         fac.push(r.timings.factorize * 1e3);
         pre.push(r.timings.precond_apply * 1e3);
@@ -78,7 +83,11 @@ fn run(kind: PreconditionerKind, steps: usize) -> Result<()> {
     let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
     println!(
         "{:<12} {:>9.3} {:>9.3} {:>9.3} {:>9.3} {:>9.3} {:>8.2} {:>7.2} {:>6}",
-        format!("{kind:?}").replace("Periodic { every: ", "every ").replace(" }", ""),
+        if kind == PreconditionerKind::Periodic { every: u32::MAX } {
+            "frozen".to_string()
+        } else {
+            format!("{kind:?}").replace("Periodic { every: ", "every ").replace(" }", "")
+        },
         median(&mut total),
         median(&mut asm),
         median(&mut fac),
@@ -88,6 +97,15 @@ fn run(kind: PreconditionerKind, steps: usize) -> Result<()> {
         mean(&ages),
         unconverged
     );
+    if kind == PreconditionerKind::Async {
+        println!(
+            "  async: median step {:.3} ms with a factorization in flight ({} steps), {:.3} ms without ({} steps)",
+            median(&mut in_flight.clone()),
+            in_flight.len(),
+            median(&mut idle.clone()),
+            idle.len()
+        );
+    }
     Ok(())
 }
 
@@ -100,6 +118,7 @@ fn main() -> ExitCode {
         PreconditionerKind::Periodic { every: 1 },
         PreconditionerKind::Periodic { every: 4 },
         PreconditionerKind::Periodic { every: 16 },
+        PreconditionerKind::Periodic { every: u32::MAX },
         PreconditionerKind::Async,
     ];
     let mut i = 1;

@@ -122,6 +122,9 @@ pub enum SoftTissueError {
     /// A contact tool shape is invalid.
     #[error("invalid tool shape: {0}")]
     InvalidShape(String),
+    /// The GPU path failed (device, shader or validation error).
+    #[error("GPU compliance: {0}")]
+    Gpu(String),
     /// A request is larger than a mode supports.
     #[error("{what}: size {size} exceeds the limit {limit}")]
     TooLarge {

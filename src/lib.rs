@@ -8,7 +8,10 @@
 //!   [`body`], [`contact`], [`scene`]. It has no Bevy types, works in `f64`, takes its
 //!   scratch memory explicitly and allocates nothing inside per-step loops. It
 //!   can be used and tested on its own.
-//! - **The Bevy plugin** — a thin ECS layer over the core.
+//! - **The Bevy plugin** — [`plugin`]: a thin ECS layer over the core
+//!   ([`SoftTissuePlugin`], chained [`SoftTissueSystems`]), the cataract scene
+//!   ([`scenes`]) and, with the `gpu` feature, the compute-shader compliance
+//!   (`gpu`).
 //!
 //! ## Method
 //! Co-rotational linear tetrahedra with per-element Young's modulus, the
@@ -38,6 +41,8 @@ pub mod body;
 pub mod contact;
 pub mod error;
 pub mod fem;
+#[cfg(feature = "gpu")]
+pub mod gpu;
 pub mod material;
 pub mod math;
 pub mod mesh;

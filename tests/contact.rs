@@ -393,3 +393,15 @@ fn node_columns_are_reused_while_the_factor_is_unchanged() {
     assert!(second.gram_blocks < first.gram_blocks);
 }
 
+
+#[test]
+fn rest_precomputed_refuses_large_meshes() {
+    let mesh = generate::box_mesh(v3(0.0, 0.0, 0.0), v3(0.02, 0.02, 0.02), [13, 13, 13]).unwrap();
+    assert!(mesh.num_vertices() > bevy_soft_tissue::contact::compliance::REST_PRECOMPUTED_MAX_NODES);
+    let body = DeformableBody::new(mesh, Material::new(1000.0, 1e4, 0.3), BodySettings::default()).unwrap();
+    let mut scene = Scene::new(ContactSettings { compliance: ComplianceMode::RestPrecomputed, ..Default::default() }).unwrap();
+    scene.add_body(body);
+    scene.add_tool(RigidTool::new(ToolShape::Sphere { radius: 5e-3 }, at(0.01, 0.01, 0.02 + 5e-3 - 5e-5)).unwrap());
+    let err = scene.step(0.01).unwrap_err();
+    assert!(matches!(err, SoftTissueError::TooLarge { .. }), "{err}");
+}

@@ -64,6 +64,26 @@ pub enum ComplianceMode {
     DenseRows,
 }
 
+/// Builds a body's compliance somewhere else than on the CPU (the GPU path of
+/// the `gpu` feature). Called for bodies in [`ComplianceMode::Factorized`] that
+/// have a preconditioner factor, with `entries` sorted by node and their `j`
+/// (`Qᵀ h`, the factor's frame) filled.
+pub trait ComplianceBackend {
+    /// Adds `h² J (L D Lᵀ)⁻¹ Jᵀ` of this body to `w` (`m × m`, row-major) and
+    /// returns `Ok(true)`, or returns `Ok(false)` to let the CPU do it.
+    #[allow(clippy::too_many_arguments)]
+    fn accumulate(
+        &mut self,
+        body_id: u64,
+        factor: &LdltFactor,
+        factor_version: u64,
+        h: f64,
+        entries: &[JacEntry],
+        w: &mut [f64],
+        m: usize,
+    ) -> Result<bool>;
+}
+
 /// One nonzero 3-vector of the contact Jacobian.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct JacEntry {
@@ -81,6 +101,25 @@ pub struct JacEntry {
 struct Column {
     start: usize,
     len: usize,
+    /// Offset of this column's unit-column-major copies in `soa_z` / `soa_s`.
+    soa: usize,
+}
+
+/// Dot product with four partial sums (vectorizes without reassociating one sum).
+fn dot(a: &[f64], b: &[f64]) -> f64 {
+    let mut acc = [0.0f64; 4];
+    let (ca, cb) = (a.chunks_exact(4), b.chunks_exact(4));
+    let (ra, rb) = (ca.remainder(), cb.remainder());
+    for (x, y) in ca.zip(cb) {
+        for k in 0..4 {
+            acc[k] += x[k] * y[k];
+        }
+    }
+    let mut s = (acc[0] + acc[1]) + (acc[2] + acc[3]);
+    for (x, y) in ra.iter().zip(rb) {
+        s += x * y;
+    }
+    s
 }
 
 /// Cached node columns `Z_k` and Gram blocks of one factor version.
@@ -91,8 +130,11 @@ struct ColumnCache {
     cols: Vec<Column>,
     paths: Vec<usize>,
     blocks: Vec<Mat3>,
-    /// `D⁻¹ Z` per block, so Gram blocks need no division.
-    scaled: Vec<Mat3>,
+    /// Per column, for each unit column `i`: the `3·len` entries `Z_t(r, i)` along the
+    /// path, contiguous (`soa_z`), and the same for `D⁻¹ Z` (`soa_s`), so a Gram
+    /// entry is one contiguous dot product.
+    soa_z: Vec<f64>,
+    soa_s: Vec<f64>,
     pairs: HashMap<(u32, u32), Mat3>,
     work: Vec<Mat3>,
     solves: usize,
@@ -143,7 +185,8 @@ impl ColumnCache {
         self.cols.clear();
         self.paths.clear();
         self.blocks.clear();
-        self.scaled.clear();
+        self.soa_z.clear();
+        self.soa_s.clear();
         self.pairs.clear();
         self.version = version;
     }
@@ -155,22 +198,20 @@ impl ColumnCache {
         }
         let start = self.paths.len();
         f.node_forward_solve(node, &mut self.work, &mut self.paths, &mut self.blocks);
-        for t in start..self.paths.len() {
-            let d = f.d[self.paths[t]];
-            let mut z = self.blocks[t];
-            for r in 0..3 {
-                let inv = 1.0 / d[r];
-                for c in 0..3 {
-                    z[(r, c)] *= inv;
+        let len = self.paths.len() - start;
+        let soa = self.soa_z.len();
+        for i in 0..3 {
+            for t in start..self.paths.len() {
+                let d = f.d[self.paths[t]];
+                let z = &self.blocks[t];
+                for r in 0..3 {
+                    self.soa_z.push(z[(r, i)]);
+                    self.soa_s.push(z[(r, i)] / d[r]);
                 }
             }
-            self.scaled.push(z);
         }
         let id = self.cols.len() as u32;
-        self.cols.push(Column {
-            start,
-            len: self.paths.len() - start,
-        });
+        self.cols.push(Column { start, len, soa });
         self.col_of_node[node] = id;
         self.solves += 1;
         id
@@ -184,20 +225,19 @@ impl ColumnCache {
         let (ca, cb) = (self.cols[key.0 as usize], self.cols[key.1 as usize]);
         let pa = &self.paths[ca.start..ca.start + ca.len];
         let pb = &self.paths[cb.start..cb.start + cb.len];
-        let (mut i, mut j) = (0, 0);
-        while i < pa.len() && j < pb.len() && pa[i] != pb[j] {
-            if pa[i] < pb[j] {
-                i += 1;
-            } else {
-                j += 1;
-            }
+        // Tree paths to the root share a common suffix (from the lowest common ancestor).
+        let mut common = 0;
+        while common < pa.len() && common < pb.len() && pa[pa.len() - 1 - common] == pb[pb.len() - 1 - common] {
+            common += 1;
         }
+        let (i, j) = (pa.len() - common, pb.len() - common);
         let mut g = Mat3::zeros();
-        let n = (pa.len() - i).min(pb.len() - j);
-        let za = &self.blocks[ca.start + i..ca.start + i + n];
-        let zb = &self.scaled[cb.start + j..cb.start + j + n];
-        for (a, b) in za.iter().zip(zb) {
-            g += a.tr_mul(b);
+        for ia in 0..3 {
+            let za = &self.soa_z[ca.soa + ia * 3 * ca.len + 3 * i..ca.soa + (ia + 1) * 3 * ca.len];
+            for jb in 0..3 {
+                let sb = &self.soa_s[cb.soa + jb * 3 * cb.len + 3 * j..cb.soa + (jb + 1) * 3 * cb.len];
+                g[(ia, jb)] = dot(za, sb);
+            }
         }
         self.pairs.insert(key, g);
         self.gram_blocks += 1;
@@ -250,7 +290,9 @@ impl BodyCompliance {
     }
 
     /// Adds this body's contribution to `w` (`m × m`, row-major).
-    /// `entries` must be sorted by node; their `j` is filled here.
+    /// `entries` must be sorted by node; their `j` is filled here. A `backend`
+    /// may take over `Factorized` bodies.
+    #[allow(clippy::too_many_arguments)]
     pub fn accumulate(
         &mut self,
         body: &DeformableBody,
@@ -259,11 +301,22 @@ impl BodyCompliance {
         entries: &mut [JacEntry],
         w: &mut [f64],
         m: usize,
+        backend: Option<&mut dyn ComplianceBackend>,
     ) -> Result<()> {
         self.cache.solves = 0;
         self.cache.gram_blocks = 0;
         if entries.is_empty() {
             return Ok(());
+        }
+        if let (ComplianceMode::Factorized, Some(backend), Some(st)) =
+            (mode, backend, body.preconditioner().factor_state())
+        {
+            for e in entries.iter_mut() {
+                e.j = if st.warped { st.warp[e.node as usize].transpose() * e.h } else { e.h };
+            }
+            if backend.accumulate(body.id(), &st.factor, st.version, h, entries, w, m)? {
+                return Ok(());
+            }
         }
         group(entries, &mut self.scratch.groups);
         let h2 = h * h;
@@ -458,7 +511,15 @@ impl BodyCompliance {
                 sc.a.resize(n, Vec3::zeros());
                 let y = &mut sc.a;
                 let cache = &self.cache;
-                if mode == ComplianceMode::Factorized && cache.version != u64::MAX {
+                let version = if use_own {
+                    self.own_version | (1 << 63)
+                } else {
+                    body.preconditioner().factor_state().map(|st| st.version).unwrap_or(u64::MAX)
+                };
+                let cached = mode == ComplianceMode::Factorized
+                    && cache.version == version
+                    && entries.iter().all(|e| cache.col_of_node.get(e.node as usize).is_some_and(|&c| c != u32::MAX));
+                if cached {
                     // Y λ from the cached node columns (their paths only).
                     let mut s = 0;
                     while s < entries.len() {
@@ -469,18 +530,15 @@ impl BodyCompliance {
                             c += entries[e].j * lambda[entries[e].row as usize];
                             e += 1;
                         }
-                        let col = cache.col_of_node[k];
-                        if col == u32::MAX {
-                            return Err(SoftTissueError::NonFinite("missing node column"));
-                        }
-                        let cl = cache.cols[col as usize];
+                        let cl = cache.cols[cache.col_of_node[k] as usize];
                         for t in 0..cl.len {
                             y[cache.paths[cl.start + t]] += cache.blocks[cl.start + t] * c;
                         }
                         s = e;
                     }
                 } else {
-                    // Full forward solve of P Jᵀ λ.
+                    // No cached columns (W built elsewhere, e.g. on the GPU, or by
+                    // DenseRows/Exact): one full forward solve of P Jᵀ λ.
                     for e in entries {
                         y[sym.iperm[e.node as usize]] += e.j * lambda[e.row as usize];
                     }

@@ -33,7 +33,7 @@ use std::time::Instant;
 use crate::body::{NodeConstraint, DeformableBody};
 use crate::error::{Result, SoftTissueError, check_positive};
 use crate::math::Vec3;
-pub use compliance::{BodyCompliance, ComplianceMode, JacEntry};
+pub use compliance::{BodyCompliance, ComplianceBackend, ComplianceMode, JacEntry};
 use detect::{TriangleBvh, boxes_overlap, closest_point_on_triangle};
 pub use lcp::{LcpReport, LcpSettings};
 pub use tool::{Pose, RigidTool, ToolShape};
@@ -494,8 +494,17 @@ impl ContactSolver {
         Ok(())
     }
 
-    /// Phase 2: builds `H` and `W = Σ_b h² H_b A_b⁻¹ H_bᵀ`.
+    /// Phase 2: builds `H` and `W = Σ_b h² H_b A_b⁻¹ H_bᵀ` on the CPU.
     pub fn build_compliance(&mut self, bodies: &[&DeformableBody]) -> Result<()> {
+        self.build_compliance_with(bodies, None)
+    }
+
+    /// Phase 2 with an optional [`ComplianceBackend`] (the GPU) for `Factorized` bodies.
+    pub fn build_compliance_with(
+        &mut self,
+        bodies: &[&DeformableBody],
+        mut backend: Option<&mut dyn ComplianceBackend>,
+    ) -> Result<()> {
         let t0 = Instant::now();
         self.rows.clear();
         self.mu.clear();
@@ -551,8 +560,18 @@ impl ContactSolver {
             }
             slot.entries.sort_unstable_by_key(|e| (e.node, e.row));
             slot.mode = body.settings().compliance.unwrap_or(self.settings.compliance);
-            slot.compliance
-                .accumulate(body, slot.mode, self.h, &mut slot.entries, &mut self.w, m)?;
+            slot.compliance.accumulate(
+                body,
+                slot.mode,
+                self.h,
+                &mut slot.entries,
+                &mut self.w,
+                m,
+                match backend {
+                    Some(ref mut b) => Some(&mut **b),
+                    None => None,
+                },
+            )?;
             self.report.solves += slot.compliance.solves();
             self.report.gram_blocks += slot.compliance.gram_blocks();
         }

@@ -158,7 +158,7 @@ impl Default for Incision {
             polar: 30f64.to_radians(),
             azimuth: std::f64::consts::FRAC_PI_2,
             length: 6.5e-3,
-            width: 1.0e-3,
+            width: 2.0e-3,
         }
     }
 }
@@ -253,8 +253,22 @@ pub fn eye_shell(p: &EyeShell) -> Result<TetMesh> {
             }
         }
     }
-    // Quads of the six faces, split into triangles.
+    // Quads of the six faces; the incision removes whole quads (both triangles),
+    // so the slit has straight walls.
     let mut tris: Vec<[usize; 3]> = Vec::new();
+    let r_mid = p.radius - 0.5 * p.thickness;
+    let in_slit = |q: &[usize; 4]| {
+        p.incision.as_ref().is_some_and(|inc| {
+            let c = (dirs[q[0]] + dirs[q[1]] + dirs[q[2]] + dirs[q[3]]).normalize();
+            let polar = c.z.clamp(-1.0, 1.0).acos();
+            let dphi = (c.y.atan2(c.x) - inc.azimuth + std::f64::consts::PI)
+                .rem_euclid(2.0 * std::f64::consts::PI)
+                - std::f64::consts::PI;
+            let across = (polar - inc.polar).abs() * r_mid;
+            let along = dphi.abs() * r_mid * inc.polar.sin();
+            across < 0.5 * inc.width && along < 0.5 * inc.length
+        })
+    };
     for axis in 0..3 {
         for side in [0, n] {
             for a in 0..n {
@@ -267,6 +281,9 @@ pub fn eye_shell(p: &EyeShell) -> Result<TetMesh> {
                         lattice[&c]
                     };
                     let q = [corner(0, 0), corner(1, 0), corner(1, 1), corner(0, 1)];
+                    if in_slit(&q) {
+                        continue;
+                    }
                     let (t1, t2) = if (a + b) % 2 == 0 {
                         ([q[0], q[1], q[2]], [q[0], q[2], q[3]])
                     } else {
@@ -277,19 +294,6 @@ pub fn eye_shell(p: &EyeShell) -> Result<TetMesh> {
                 }
             }
         }
-    }
-    if let Some(inc) = &p.incision {
-        let r_mid = p.radius - 0.5 * p.thickness;
-        tris.retain(|t| {
-            let c = (dirs[t[0]] + dirs[t[1]] + dirs[t[2]]).normalize();
-            let polar = c.z.clamp(-1.0, 1.0).acos();
-            let mut dphi = c.y.atan2(c.x) - inc.azimuth;
-            dphi = (dphi + std::f64::consts::PI).rem_euclid(2.0 * std::f64::consts::PI)
-                - std::f64::consts::PI;
-            let across = (polar - inc.polar).abs() * r_mid;
-            let along = dphi.abs() * r_mid * inc.polar.sin();
-            !(across < 0.5 * inc.width && along < 0.5 * inc.length)
-        });
     }
     // Compact the surface vertices that are still used.
     let mut remap = vec![usize::MAX; dirs.len()];

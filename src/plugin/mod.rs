@@ -81,6 +81,25 @@ pub enum SoftTissueSystems {
     Sync,
 }
 
+/// Where the contact compliance of `Factorized` bodies is built.
+///
+/// The GPU path needs the `gpu` feature and a render device (`RenderPlugin`);
+/// otherwise every mode builds on the CPU.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Reflect)]
+pub enum GpuMode {
+    /// Always on the CPU.
+    #[default]
+    Off,
+    /// On the GPU whenever there are contacts.
+    On,
+    /// On the GPU when a body has at least `min_rows` constraint rows
+    /// (contacts × 3 with friction, × 1 without).
+    Auto {
+        /// Crossover in rows.
+        min_rows: usize,
+    },
+}
+
 /// Global settings (a resource; change it at runtime).
 #[derive(Resource, Reflect, Debug, Clone)]
 #[reflect(Resource)]
@@ -104,6 +123,8 @@ pub struct SoftTissueConfig {
     /// Contact detection and LCP settings.
     #[reflect(ignore)]
     pub contact: ContactSettings,
+    /// GPU compliance (feature `gpu`).
+    pub gpu: GpuMode,
 }
 
 impl Default for SoftTissueConfig {
@@ -117,6 +138,7 @@ impl Default for SoftTissueConfig {
             preconditioner: PreconditionerKind::Async,
             compliance: ComplianceMode::Factorized,
             contact: ContactSettings::default(),
+            gpu: GpuMode::Off,
         }
     }
 }
@@ -310,6 +332,8 @@ impl Plugin for ContactPlugin {
                 correct.in_set(SoftTissueSystems::Correct),
             ),
         );
+        #[cfg(feature = "gpu")]
+        app.add_systems(self.schedule, ensure_gpu.in_set(SoftTissueSystems::Detect));
     }
 }
 
@@ -484,10 +508,37 @@ fn detect(
     }
 }
 
+/// The GPU compliance builder, created once a render device exists.
+#[cfg(feature = "gpu")]
+#[derive(Resource, Debug)]
+pub struct GpuBackend(pub crate::gpu::GpuCompliance);
+
+#[cfg(feature = "gpu")]
+fn ensure_gpu(
+    mut commands: Commands,
+    config: Res<SoftTissueConfig>,
+    existing: Option<Res<GpuBackend>>,
+    device: Option<Res<bevy::render::renderer::RenderDevice>>,
+    queue: Option<Res<bevy::render::renderer::RenderQueue>>,
+) {
+    if config.gpu != GpuMode::Off
+        && existing.is_none()
+        && let (Some(d), Some(q)) = (device, queue)
+    {
+        commands.insert_resource(GpuBackend(crate::gpu::GpuCompliance::new(
+            d.clone(),
+            q.clone(),
+            config.gpu,
+        )));
+    }
+}
+
 fn compliance(
+    config: Res<SoftTissueConfig>,
     mut contacts: ResMut<SoftTissueContacts>,
     bodies: Query<&SoftBody>,
     mut diag: ResMut<SoftTissueDiagnostics>,
+    #[cfg(feature = "gpu")] gpu: Option<ResMut<GpuBackend>>,
 ) {
     if !contacts.active {
         return;
@@ -495,7 +546,24 @@ fn compliance(
     let contacts = &mut *contacts;
     let b: Vec<&DeformableBody> = contacts.bodies.iter().filter_map(|e| bodies.get(*e).ok().map(|b| &b.0)).collect();
     diag.compliance_builds += 1;
-    if let Err(e) = contacts.solver.build_compliance(&b) {
+    #[cfg(feature = "gpu")]
+    let result = match gpu {
+        Some(mut g) if config.gpu != GpuMode::Off => {
+            let g = &mut g.0;
+            g.mode = config.gpu;
+            let before = g.dispatches;
+            let r = contacts.solver.build_compliance_with(&b, Some(g));
+            diag.gpu_dispatches += g.dispatches - before;
+            r
+        }
+        _ => contacts.solver.build_compliance(&b),
+    };
+    #[cfg(not(feature = "gpu"))]
+    let result = {
+        let _ = &config;
+        contacts.solver.build_compliance(&b)
+    };
+    if let Err(e) = result {
         diag.errors += 1;
         warn!("compliance failed: {e}");
         contacts.active = false;

@@ -49,7 +49,7 @@ impl Default for CataractParams {
             lens_cells: 12,
             eye: EyeShell {
                 incision: Some(Incision {
-                    width: 1.6e-3,
+                    width: 2.0e-3,
                     ..Default::default()
                 }),
                 ..Default::default()

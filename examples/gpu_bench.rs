@@ -1,0 +1,96 @@
+//! GPU against CPU compliance build time on the paper-size lens (1183 nodes),
+//! with friction, for 30 … 260 contacts. Runs on Bevy's render device.
+//!
+//! ```text
+//! cargo run --release --features gpu --example gpu_bench
+//! ```
+//! On Mesa lavapipe (a CPU rasterizer) the numbers only show that the path
+//! works; GPU timings need a real GPU.
+
+use std::time::Instant;
+
+use bevy::prelude::*;
+use bevy::render::RenderPlugin;
+use bevy::render::renderer::{RenderAdapterInfo, RenderDevice, RenderQueue};
+use bevy::render::settings::{RenderCreation, WgpuSettings};
+use bevy::window::ExitCondition;
+use bevy_soft_tissue::contact::{ContactOther, ContactSide};
+use bevy_soft_tissue::gpu::GpuCompliance;
+use bevy_soft_tissue::mesh::generate::LENS_RADII;
+use bevy_soft_tissue::plugin::GpuMode;
+use bevy_soft_tissue::prelude::*;
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
+}
+
+fn main() -> Result<()> {
+    let mut app = App::new();
+    app.add_plugins((
+        MinimalPlugins,
+        AssetPlugin::default(),
+        bevy::image::ImagePlugin::default(),
+        bevy::mesh::MeshPlugin,
+        bevy::camera::CameraPlugin,
+        bevy::window::WindowPlugin { primary_window: None, exit_condition: ExitCondition::DontExit, ..Default::default() },
+        RenderPlugin {
+            render_creation: RenderCreation::Automatic(Box::new(WgpuSettings::default())),
+            synchronous_pipeline_compilation: true,
+            ..Default::default()
+        },
+    ));
+    app.finish();
+    app.cleanup();
+    let (Some(device), Some(queue)) = (app.world().get_resource::<RenderDevice>(), app.world().get_resource::<RenderQueue>()) else {
+        eprintln!("no render device");
+        return Ok(());
+    };
+    if let Some(info) = app.world().get_resource::<RenderAdapterInfo>() {
+        println!("adapter: {} ({:?})", info.name, info.device_type);
+    }
+    let mut gpu = GpuCompliance::new(device.clone(), queue.clone(), GpuMode::On);
+    let mesh = generate::ellipsoid(LENS_RADII, 12)?;
+    let settings = BodySettings { preconditioner: PreconditionerKind::Periodic { every: 1_000_000 }, ..Default::default() };
+    let mut body = DeformableBody::new(mesh, Material::new(1000.0, 5e3, 0.45), settings)?;
+    body.fix_where(|p| p.z < -2.0e-3);
+    body.step(0.02)?;
+    let mut verts: Vec<usize> = body.surface().vertices.clone();
+    let pole = v3(0.0, 0.0, LENS_RADII[2]);
+    verts.sort_by(|&a, &b| (body.positions()[a] - pole).norm().total_cmp(&(body.positions()[b] - pole).norm()));
+    println!("compliance build time (ms, median of 5), friction on");
+    println!("{:>8} {:>14} {:>10} {:>10}", "contacts", "CPU Factorized", "GPU", "GPU/CPU");
+    for n in [30, 60, 90, 130, 260] {
+        let cs: Vec<Contact> = verts
+            .iter()
+            .take(n)
+            .map(|&v| Contact {
+                a: ContactSide { body: 0, nodes: [v as u32, 0, 0], weights: [1.0, 0.0, 0.0] },
+                other: ContactOther::Tool(0),
+                normal: v3(0.0, 0.0, -1.0),
+                tangents: [v3(1.0, 0.0, 0.0), v3(0.0, 1.0, 0.0)],
+                gap: -1e-5,
+                slip: [0.0, 0.0],
+                mu: 0.3,
+                point: body.positions()[v],
+                force: Vec3::zeros(),
+            })
+            .collect();
+        let (mut cpu_t, mut gpu_t) = (Vec::new(), Vec::new());
+        for _ in 0..5 {
+            let mut s = ContactSolver::new(ContactSettings::default())?;
+            s.set_contacts(&cs, &[&body], 0.02)?;
+            let t0 = Instant::now();
+            s.build_compliance(&[&body])?;
+            cpu_t.push(t0.elapsed().as_secs_f64() * 1e3);
+            let mut s = ContactSolver::new(ContactSettings::default())?;
+            s.set_contacts(&cs, &[&body], 0.02)?;
+            let t0 = Instant::now();
+            s.build_compliance_with(&[&body], Some(&mut gpu))?;
+            gpu_t.push(t0.elapsed().as_secs_f64() * 1e3);
+        }
+        let (c, g) = (median(cpu_t), median(gpu_t));
+        println!("{n:>8} {c:>14.3} {g:>10.3} {:>10.2}", g / c);
+    }
+    Ok(())
+}

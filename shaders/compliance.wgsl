@@ -1,0 +1,221 @@
+// Contact compliance on the GPU: W = h² J (L D Lᵀ)⁻¹ Jᵀ for one body.
+//
+// Bindings are numbered across the module; each entry point uses its subset
+// (pipelines use automatic layouts). Three entry points, dispatched in order:
+//   forward   — one workgroup per contact node: the reach-restricted forward
+//               solve Z_k = L⁻¹ E_k of the node's three unit columns, walking only
+//               the node's elimination-tree path (3×3 node supernodes);
+//   gram      — one workgroup per pair of contact nodes (a ≤ b): the Gram block
+//               G_ab = Σ Z_aᵀ D⁻¹ Z_b over the common suffix of their paths;
+//   contract  — one invocation per entry of W: W_rs = h² Σ j_raᵀ G_ab j_sb.
+//
+// 3×3 blocks are stored column-major (element (r, c) at 3c + r), like nalgebra.
+// Paths: for contact node k, paths[k * stride] is the length, followed by the
+// permuted node ids in ascending order (stride = longest path + 1).
+
+struct Params {
+    n: u32,        // nodes of the body
+    k: u32,        // contact nodes
+    stride: u32,   // path stride
+    m: u32,        // rows of W handled by this body
+    h2: f32,       // h²
+    pad0: u32,
+    pad1: u32,
+    pad2: u32,
+}
+
+@group(0) @binding(0) var<uniform> params: Params;
+@group(0) @binding(1) var<storage, read> col_ptr: array<u32>;
+@group(0) @binding(2) var<storage, read> row_idx: array<u32>;
+@group(0) @binding(3) var<storage, read> lvals: array<f32>;
+@group(0) @binding(4) var<storage, read> ldiag: array<f32>;
+@group(0) @binding(5) var<storage, read> paths: array<u32>;
+@group(0) @binding(6) var<storage, read_write> zout: array<f32>;
+@group(0) @binding(7) var<storage, read_write> work: array<f32>;
+
+const WG: u32 = 64u;
+
+var<workgroup> s_len: u32;
+var<workgroup> s_z: array<f32, 9>;
+
+@compute @workgroup_size(64)
+fn forward(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) lid: u32) {
+    let c = wid.x;
+    let pbase = c * params.stride;
+    let wbase = c * params.n * 9u;
+    if (lid == 0u) {
+        s_len = paths[pbase];
+    }
+    let len = workgroupUniformLoad(&s_len);
+    // Clear the rows this solve touches (all on the path), set the unit columns.
+    for (var t = lid; t < len; t += WG) {
+        let node = paths[pbase + 1u + t];
+        for (var i = 0u; i < 9u; i++) {
+            work[wbase + node * 9u + i] = 0.0;
+        }
+    }
+    storageBarrier();
+    workgroupBarrier();
+    if (lid == 0u && len > 0u) {
+        let first = paths[pbase + 1u];
+        work[wbase + first * 9u + 0u] = 1.0;
+        work[wbase + first * 9u + 4u] = 1.0;
+        work[wbase + first * 9u + 8u] = 1.0;
+    }
+    storageBarrier();
+    workgroupBarrier();
+    for (var t = 0u; t < len; t++) {
+        let j = paths[pbase + 1u + t];
+        if (lid == 0u) {
+            // z_j = L_jj⁻¹ work_j, L_jj unit lower triangular (l10, l20, l21).
+            let l10 = ldiag[j * 3u];
+            let l20 = ldiag[j * 3u + 1u];
+            let l21 = ldiag[j * 3u + 2u];
+            for (var col = 0u; col < 3u; col++) {
+                let b0 = work[wbase + j * 9u + col * 3u];
+                let b1 = work[wbase + j * 9u + col * 3u + 1u];
+                let b2 = work[wbase + j * 9u + col * 3u + 2u];
+                let x0 = b0;
+                let x1 = b1 - l10 * x0;
+                let x2 = b2 - l20 * x0 - l21 * x1;
+                s_z[col * 3u] = x0;
+                s_z[col * 3u + 1u] = x1;
+                s_z[col * 3u + 2u] = x2;
+            }
+            for (var i = 0u; i < 9u; i++) {
+                zout[(c * params.stride + t) * 9u + i] = s_z[i];
+            }
+        }
+        workgroupBarrier();
+        // work_r -= L_rj z_j for the rows of column j (distinct rows: no conflicts).
+        let p0 = col_ptr[j];
+        let p1 = col_ptr[j + 1u];
+        for (var p = p0 + lid; p < p1; p += WG) {
+            let r = row_idx[p];
+            for (var col = 0u; col < 3u; col++) {
+                for (var row = 0u; row < 3u; row++) {
+                    var acc = 0.0;
+                    for (var q = 0u; q < 3u; q++) {
+                        acc += lvals[p * 9u + q * 3u + row] * s_z[col * 3u + q];
+                    }
+                    work[wbase + r * 9u + col * 3u + row] -= acc;
+                }
+            }
+        }
+        storageBarrier();
+        workgroupBarrier();
+    }
+}
+
+@group(0) @binding(8) var<storage, read> dinv: array<f32>;
+@group(0) @binding(9) var<storage, read_write> gram: array<f32>;
+
+var<workgroup> s_common: u32;
+var<workgroup> s_acc: array<array<f32, 9>, 64>;
+
+@compute @workgroup_size(64)
+fn gram_blocks(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) lid: u32) {
+    let a = wid.x;
+    let b = wid.y;
+    if (b < a) {
+        return;
+    }
+    let pa = a * params.stride;
+    let pb = b * params.stride;
+    let la = paths[pa];
+    let lb = paths[pb];
+    if (lid == 0u) {
+        // Paths end at the root of their tree: the shared part is a common suffix.
+        var common = 0u;
+        loop {
+            if (common >= la || common >= lb) {
+                break;
+            }
+            if (paths[pa + la - common] != paths[pb + lb - common]) {
+                break;
+            }
+            common++;
+        }
+        s_common = common;
+    }
+    let common = workgroupUniformLoad(&s_common);
+    var acc: array<f32, 9>;
+    for (var i = 0u; i < 9u; i++) {
+        acc[i] = 0.0;
+    }
+    for (var t = lid; t < common; t += WG) {
+        let ia = la - common + t;
+        let ib = lb - common + t;
+        let node = paths[pa + 1u + ia];
+        let za = (a * params.stride + ia) * 9u;
+        let zb = (b * params.stride + ib) * 9u;
+        // G += Z_aᵀ diag(dinv) Z_b
+        for (var ca = 0u; ca < 3u; ca++) {
+            for (var cb = 0u; cb < 3u; cb++) {
+                var s = 0.0;
+                for (var r = 0u; r < 3u; r++) {
+                    s += zout[za + ca * 3u + r] * dinv[node * 3u + r] * zout[zb + cb * 3u + r];
+                }
+                acc[cb * 3u + ca] += s;
+            }
+        }
+    }
+    s_acc[lid] = acc;
+    workgroupBarrier();
+    var stride = WG / 2u;
+    loop {
+        if (stride == 0u) {
+            break;
+        }
+        if (lid < stride) {
+            for (var i = 0u; i < 9u; i++) {
+                s_acc[lid][i] += s_acc[lid + stride][i];
+            }
+        }
+        workgroupBarrier();
+        stride = stride / 2u;
+    }
+    if (lid == 0u) {
+        let k = params.k;
+        for (var r = 0u; r < 3u; r++) {
+            for (var c = 0u; c < 3u; c++) {
+                let v = s_acc[0][c * 3u + r];
+                gram[(a * k + b) * 9u + c * 3u + r] = v;
+                gram[(b * k + a) * 9u + r * 3u + c] = v;
+            }
+        }
+    }
+}
+
+@group(0) @binding(10) var<storage, read> row_ptr: array<u32>;
+@group(0) @binding(11) var<storage, read> ent_node: array<u32>;
+@group(0) @binding(12) var<storage, read> ent_j: array<f32>;
+@group(0) @binding(13) var<storage, read_write> wout: array<f32>;
+
+@compute @workgroup_size(64)
+fn contract(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let m = params.m;
+    let idx = gid.x;
+    if (idx >= m * m) {
+        return;
+    }
+    let r = idx / m;
+    let s = idx % m;
+    let k = params.k;
+    var w = 0.0;
+    for (var e = row_ptr[r]; e < row_ptr[r + 1u]; e++) {
+        let a = ent_node[e];
+        let ja = vec3<f32>(ent_j[e * 3u], ent_j[e * 3u + 1u], ent_j[e * 3u + 2u]);
+        for (var f = row_ptr[s]; f < row_ptr[s + 1u]; f++) {
+            let b = ent_node[f];
+            let jb = vec3<f32>(ent_j[f * 3u], ent_j[f * 3u + 1u], ent_j[f * 3u + 2u]);
+            let g = (a * k + b) * 9u;
+            // jaᵀ G_ab jb, G column-major.
+            for (var c = 0u; c < 3u; c++) {
+                let gc = vec3<f32>(gram[g + c * 3u], gram[g + c * 3u + 1u], gram[g + c * 3u + 2u]);
+                w += dot(ja, gc) * jb[c];
+            }
+        }
+    }
+    wout[idx] = params.h2 * w;
+}
