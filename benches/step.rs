@@ -3,8 +3,8 @@
 //!
 //! Run: `cargo bench --bench step`.
 
+use bevy_soft_tissue::core_prelude::*;
 use bevy_soft_tissue::mesh::generate::LENS_RADII;
-use bevy_soft_tissue::prelude::*;
 use criterion::{Criterion, criterion_group, criterion_main};
 use nalgebra::Rotation3;
 
@@ -19,12 +19,17 @@ fn lens_body(kind: PreconditionerKind) -> (DeformableBody, Vec<usize>) {
     });
     let settings = BodySettings {
         preconditioner: kind,
-        cg: CgSettings { max_iterations: 1000, ..Default::default() },
+        cg: CgSettings {
+            max_iterations: 1000,
+            ..Default::default()
+        },
         ..Default::default()
     };
     let mut body = DeformableBody::new(mesh.clone(), material, settings).expect("body");
     body.fix_where(|p| p.z < -1.6e-3);
-    let top = (0..mesh.num_vertices()).filter(|&i| mesh.positions()[i].z > 1.6e-3).collect();
+    let top = (0..mesh.num_vertices())
+        .filter(|&i| mesh.positions()[i].z > 1.6e-3)
+        .collect();
     (body, top)
 }
 
@@ -48,7 +53,8 @@ fn bench(c: &mut Criterion) {
                 let rot = Rotation3::from_axis_angle(&Vec3::z_axis(), s * 0.8);
                 for &i in &top {
                     let p = rest[i];
-                    body.drive_node(i, rot * v3(p.x, p.y, p.z - s * 1.5e-3)).expect("drive");
+                    body.drive_node(i, rot * v3(p.x, p.y, p.z - s * 1.5e-3))
+                        .expect("drive");
                 }
                 body.step(0.02).expect("step")
             })

@@ -46,12 +46,18 @@ fn parse() -> Result<Args, String> {
     let args: Vec<String> = std::env::args().skip(1).collect();
     let mut i = 0;
     while i < args.len() {
-        let value = || args.get(i + 1).cloned().ok_or(format!("{} needs a value", args[i]));
+        let value = || {
+            args.get(i + 1)
+                .cloned()
+                .ok_or(format!("{} needs a value", args[i]))
+        };
         match args[i].as_str() {
             "--headless" => a.headless = true,
             "--coarse" => a.coarse = true,
             "--steps" => {
-                a.steps = value()?.parse().map_err(|_| "--steps needs a number".to_string())?;
+                a.steps = value()?
+                    .parse()
+                    .map_err(|_| "--steps needs a number".to_string())?;
                 i += 1;
             }
             "--preconditioner" => {
@@ -61,7 +67,9 @@ fn parse() -> Result<Args, String> {
                     "exact" => PreconditionerKind::Exact,
                     "async" => PreconditionerKind::Async,
                     p if p.starts_with("periodic") => PreconditionerKind::Periodic {
-                        every: p[8..].parse().map_err(|_| format!("bad preconditioner `{v}`"))?,
+                        every: p[8..]
+                            .parse()
+                            .map_err(|_| format!("bad preconditioner `{v}`"))?,
                     },
                     _ => return Err(format!("unknown preconditioner `{v}`")),
                 };
@@ -93,7 +101,16 @@ fn headless(args: &Args, params: &CataractParams, config: SoftTissueConfig) -> E
     );
     match run_headless(params, config, args.steps) {
         Ok(s) => {
-            let names = ["assemble", "factorize", "free motion", "detect", "compliance", "lcp", "correct", "step"];
+            let names = [
+                "assemble",
+                "factorize",
+                "free motion",
+                "detect",
+                "compliance",
+                "lcp",
+                "correct",
+                "step",
+            ];
             println!("median time per phase (ms):");
             for (n, v) in names.iter().zip(s.median_ms) {
                 println!("  {n:<12} {v:8.3}");
@@ -104,10 +121,19 @@ fn headless(args: &Args, params: &CataractParams, config: SoftTissueConfig) -> E
                 None => println!("no step had 50-90 contacts"),
             }
             println!("contacts: median {}, max {}", s.contacts.0, s.contacts.1);
-            println!("CG iterations per step (both bodies): {:.2}", s.cg_iterations);
+            println!(
+                "CG iterations per step (both bodies): {:.2}",
+                s.cg_iterations
+            );
             let moved = (s.lens_center.1 - s.lens_center.0) * 1e3;
-            println!("lens centre moved by ({:.2}, {:.2}, {:.2}) mm", moved.x, moved.y, moved.z);
-            println!("max penetration {:.2e} m (tolerance {:.2e} m)", s.max_penetration, s.tolerance);
+            println!(
+                "lens centre moved by ({:.2}, {:.2}, {:.2}) mm",
+                moved.x, moved.y, moved.z
+            );
+            println!(
+                "max penetration {:.2e} m (tolerance {:.2e} m)",
+                s.max_penetration, s.tolerance
+            );
             if s.max_penetration > s.tolerance {
                 eprintln!("penetration beyond tolerance");
                 return ExitCode::FAILURE;
@@ -129,19 +155,28 @@ fn main() -> ExitCode {
             return ExitCode::FAILURE;
         }
     };
-    let params = if args.coarse { CataractParams::coarse() } else { CataractParams::default() };
+    let params = if args.coarse {
+        CataractParams::coarse()
+    } else {
+        CataractParams::default()
+    };
     let config = SoftTissueConfig {
         timestep: 1.0 / 60.0,
         preconditioner: args.preconditioner,
         compliance: args.compliance,
         ..Default::default()
     };
-    let has_display = std::env::var_os("DISPLAY").is_some() || std::env::var_os("WAYLAND_DISPLAY").is_some();
+    let has_display =
+        std::env::var_os("DISPLAY").is_some() || std::env::var_os("WAYLAND_DISPLAY").is_some();
     if args.headless || !has_display || !cfg!(feature = "viewer") {
         if !args.headless {
             println!(
                 "{}; running headless",
-                if cfg!(feature = "viewer") { "no display found" } else { "built without the `viewer` feature" }
+                if cfg!(feature = "viewer") {
+                    "no display found"
+                } else {
+                    "built without the `viewer` feature"
+                }
             );
         }
         return headless(&args, &params, config);
@@ -158,13 +193,15 @@ mod viewer {
     use bevy::input::mouse::{AccumulatedMouseMotion, AccumulatedMouseScroll};
     use bevy::prelude::*;
     use bevy_egui::{EguiContexts, EguiPlugin, EguiPrimaryContextPass, egui};
+    use bevy_soft_tissue::SoftTissuePlugin;
     use bevy_soft_tissue::contact::ComplianceMode;
     use bevy_soft_tissue::plugin::render::BodyColoring;
-    use bevy_soft_tissue::plugin::{PreconditionerOverride, SoftBody, SoftTissueConfig, SoftTissueDiagnostics};
+    use bevy_soft_tissue::plugin::{
+        PreconditionerOverride, SoftBody, SoftTissueConfig, SoftTissueDiagnostics,
+    };
     use bevy_soft_tissue::scenes::cataract::{CataractParams, incision_frame};
     use bevy_soft_tissue::scenes::{CataractScenePlugin, Eye, Lens, Vectis};
     use bevy_soft_tissue::solver::PreconditionerKind;
-    use bevy_soft_tissue::SoftTissuePlugin;
 
     #[derive(Resource)]
     struct Ui {
@@ -208,7 +245,9 @@ mod viewer {
                 history: VecDeque::new(),
                 frame_time: 0.0,
             })
-            .add_systems(Startup, move |mut commands: Commands| setup(&mut commands, target))
+            .add_systems(Startup, move |mut commands: Commands| {
+                setup(&mut commands, target)
+            })
             .add_systems(PostStartup, style_bodies)
             .add_systems(Update, (orbit_camera, keyboard_tool, record))
             .add_systems(EguiPrimaryContextPass, panel)
@@ -219,20 +258,41 @@ mod viewer {
         commands.spawn((
             Camera3d::default(),
             // Millimetre-scale scene: the default near plane (0.1 m) would clip everything.
-            Projection::from(PerspectiveProjection { near: 1e-4, far: 1.0, ..Default::default() }),
+            Projection::from(PerspectiveProjection {
+                near: 1e-4,
+                far: 1.0,
+                ..Default::default()
+            }),
             Transform::default(),
-            OrbitCamera { yaw: 0.6, pitch: 0.5, distance: 0.045, target },
+            OrbitCamera {
+                yaw: 0.6,
+                pitch: 0.5,
+                distance: 0.045,
+                target,
+            },
         ));
         commands.spawn((
-            DirectionalLight { illuminance: 9000.0, shadow_maps_enabled: false, ..Default::default() },
+            DirectionalLight {
+                illuminance: 9000.0,
+                shadow_maps_enabled: false,
+                ..Default::default()
+            },
             Transform::from_xyz(0.3, -0.2, 1.0).looking_at(Vec3::ZERO, Vec3::Z),
         ));
-        commands.insert_resource(GlobalAmbientLight { brightness: 400.0, ..Default::default() });
+        commands.insert_resource(GlobalAmbientLight {
+            brightness: 400.0,
+            ..Default::default()
+        });
     }
 
-    fn style_bodies(mut commands: Commands, eyes: Query<Entity, (With<Eye>, Without<BodyColoring>)>) {
+    fn style_bodies(
+        mut commands: Commands,
+        eyes: Query<Entity, (With<Eye>, Without<BodyColoring>)>,
+    ) {
         for e in &eyes {
-            commands.entity(e).insert(BodyColoring::Solid(Color::srgba(0.95, 0.9, 0.85, 0.35)));
+            commands
+                .entity(e)
+                .insert(BodyColoring::Solid(Color::srgba(0.95, 0.9, 0.85, 0.35)));
         }
     }
 
@@ -243,7 +303,10 @@ mod viewer {
         scroll: Res<AccumulatedMouseScroll>,
         mut contexts: EguiContexts,
     ) {
-        let over_ui = contexts.ctx_mut().map(|c| c.is_pointer_over_egui()).unwrap_or(false);
+        let over_ui = contexts
+            .ctx_mut()
+            .map(|c| c.is_pointer_over_egui())
+            .unwrap_or(false);
         for (mut o, mut t) in &mut q {
             if buttons.pressed(MouseButton::Right) && !over_ui {
                 o.yaw -= motion.delta.x * 0.005;
@@ -252,12 +315,21 @@ mod viewer {
             if !over_ui {
                 o.distance = (o.distance * (1.0 - 0.1 * scroll.delta.y)).clamp(0.01, 0.2);
             }
-            let dir = Vec3::new(o.yaw.cos() * o.pitch.cos(), o.yaw.sin() * o.pitch.cos(), o.pitch.sin());
-            *t = Transform::from_translation(o.target + dir * o.distance).looking_at(o.target, Vec3::Z);
+            let dir = Vec3::new(
+                o.yaw.cos() * o.pitch.cos(),
+                o.yaw.sin() * o.pitch.cos(),
+                o.pitch.sin(),
+            );
+            *t = Transform::from_translation(o.target + dir * o.distance)
+                .looking_at(o.target, Vec3::Z);
         }
     }
 
-    fn keyboard_tool(keys: Res<ButtonInput<KeyCode>>, time: Res<Time>, mut q: Query<(&mut Vectis, &mut Transform)>) {
+    fn keyboard_tool(
+        keys: Res<ButtonInput<KeyCode>>,
+        time: Res<Time>,
+        mut q: Query<(&mut Vectis, &mut Transform)>,
+    ) {
         for (mut v, mut t) in &mut q {
             if keys.just_pressed(KeyCode::Space) {
                 v.scripted = !v.scripted;
@@ -286,7 +358,11 @@ mod viewer {
 
     fn record(mut ui: ResMut<Ui>, diag: Res<SoftTissueDiagnostics>, time: Res<Time>) {
         ui.frame_time = 0.9 * ui.frame_time + 0.1 * time.delta_secs();
-        let fps = if ui.frame_time > 0.0 { 1.0 / ui.frame_time } else { 0.0 };
+        let fps = if ui.frame_time > 0.0 {
+            1.0 / ui.frame_time
+        } else {
+            0.0
+        };
         let d = &*diag;
         let row = [
             fps,
@@ -307,8 +383,14 @@ mod viewer {
     }
 
     fn chart(ui: &mut egui::Ui, title: &str, series: &[(&str, Vec<f32>, egui::Color32)]) {
-        let max = series.iter().flat_map(|s| s.1.iter()).fold(1e-6f32, |a, &b| a.max(b));
-        let last: Vec<String> = series.iter().map(|s| format!("{} {:.2}", s.0, s.1.last().copied().unwrap_or(0.0))).collect();
+        let max = series
+            .iter()
+            .flat_map(|s| s.1.iter())
+            .fold(1e-6f32, |a, &b| a.max(b));
+        let last: Vec<String> = series
+            .iter()
+            .map(|s| format!("{} {:.2}", s.0, s.1.last().copied().unwrap_or(0.0)))
+            .collect();
         ui.label(format!("{title}: {}", last.join(", ")));
         let (rect, _) = ui.allocate_exact_size(egui::vec2(300.0, 60.0), egui::Sense::hover());
         let painter = ui.painter_at(rect);
@@ -318,7 +400,12 @@ mod viewer {
             let pts: Vec<egui::Pos2> = v
                 .iter()
                 .enumerate()
-                .map(|(i, y)| egui::pos2(rect.left() + rect.width() * i as f32 / (n - 1.0), rect.bottom() - rect.height() * y / max))
+                .map(|(i, y)| {
+                    egui::pos2(
+                        rect.left() + rect.width() * i as f32 / (n - 1.0),
+                        rect.bottom() - rect.height() * y / max,
+                    )
+                })
                 .collect();
             painter.add(egui::Shape::line(pts, egui::Stroke::new(1.5, *color)));
         }
@@ -337,76 +424,93 @@ mod viewer {
     ) -> Result {
         let ctx = contexts.ctx_mut()?;
         let s = &mut *ui_state;
-        egui::Window::new("Soft tissue").default_width(320.0).show(ctx, |ui| {
-            ui.heading("Effects");
-            ui.checkbox(&mut config.contacts, "contacts");
-            ui.checkbox(&mut config.friction, "friction");
-            ui.checkbox(&mut config.damping, "damping");
-            if ui.checkbox(&mut s.gravity, "gravity").changed() {
-                config.gravity = s.gravity.then_some(bevy::math::DVec3::new(0.0, 0.0, -9.81));
-            }
-            for mut v in &mut vectis {
-                ui.checkbox(&mut v.scripted, "scripted vectis path (Space)");
-            }
-            ui.separator();
-            ui.heading("Preconditioner and refresh policy");
-            let names = ["Jacobi", "Exact LDLT every step", "Periodic LDLT", "Async LDLT"];
-            let mut changed = false;
-            for (i, n) in names.iter().enumerate() {
-                changed |= ui.radio_value(&mut s.preconditioner, i, *n).changed();
-            }
-            changed |= ui.add(egui::Slider::new(&mut s.period, 1..=32).text("refresh every N steps")).changed();
-            if changed {
-                let kind = match s.preconditioner {
-                    0 => PreconditionerKind::Jacobi,
-                    1 => PreconditionerKind::Exact,
-                    2 => PreconditionerKind::Periodic { every: s.period },
-                    _ => PreconditionerKind::Async,
-                };
-                for e in &bodies {
-                    commands.entity(e).insert(PreconditionerOverride(kind));
+        egui::Window::new("Soft tissue")
+            .default_width(320.0)
+            .show(ctx, |ui| {
+                ui.heading("Effects");
+                ui.checkbox(&mut config.contacts, "contacts");
+                ui.checkbox(&mut config.friction, "friction");
+                ui.checkbox(&mut config.damping, "damping");
+                if ui.checkbox(&mut s.gravity, "gravity").changed() {
+                    config.gravity = s.gravity.then_some(bevy::math::DVec3::new(0.0, 0.0, -9.81));
                 }
-            }
-            ui.separator();
-            ui.heading("Contact compliance");
-            let modes = [
-                ("Factorized (node columns)", ComplianceMode::Factorized),
-                ("Exact (fresh LDLT)", ComplianceMode::Exact),
-                ("Diagonal (uncoupled)", ComplianceMode::Diagonal),
-                ("Rest-precomputed dense", ComplianceMode::RestPrecomputed),
-                ("Dense rows (paper CPU)", ComplianceMode::DenseRows),
-            ];
-            for (i, (n, m)) in modes.iter().enumerate() {
-                if ui.radio_value(&mut s.compliance, i, *n).changed() {
-                    config.compliance = *m;
+                for mut v in &mut vectis {
+                    ui.checkbox(&mut v.scripted, "scripted vectis path (Space)");
                 }
-            }
-            ui.separator();
-            let col = |k: usize| s.history.iter().map(|r| r[k]).collect::<Vec<f32>>();
-            chart(ui, "FPS", &[("fps", col(0), egui::Color32::LIGHT_GREEN)]);
-            chart(ui, "CG iterations", &[("its", col(1), egui::Color32::LIGHT_BLUE)]);
-            chart(ui, "contacts", &[("n", col(2), egui::Color32::YELLOW)]);
-            chart(
-                ui,
-                "time per phase (ms)",
-                &[
-                    ("step", col(9), egui::Color32::WHITE),
-                    ("asm", col(3), egui::Color32::LIGHT_RED),
-                    ("fact", col(4), egui::Color32::from_rgb(255, 160, 60)),
-                    ("cg", col(5), egui::Color32::LIGHT_BLUE),
-                    ("det", col(6), egui::Color32::GRAY),
-                    ("W", col(7), egui::Color32::YELLOW),
-                    ("lcp+corr", col(8), egui::Color32::LIGHT_GREEN),
-                ],
-            );
-            ui.label(format!(
-                "factor age {} steps, LCP residual {:.1e} m, errors {}",
-                diag.factor_age, diag.lcp_residual, diag.errors
-            ));
-            if let Some(l) = lens.iter().next() {
-                ui.label(format!("lens: {} nodes, {} tets", l.num_nodes(), l.mesh().num_tets()));
-            }
-        });
+                ui.separator();
+                ui.heading("Preconditioner and refresh policy");
+                let names = [
+                    "Jacobi",
+                    "Exact LDLT every step",
+                    "Periodic LDLT",
+                    "Async LDLT",
+                ];
+                let mut changed = false;
+                for (i, n) in names.iter().enumerate() {
+                    changed |= ui.radio_value(&mut s.preconditioner, i, *n).changed();
+                }
+                changed |= ui
+                    .add(egui::Slider::new(&mut s.period, 1..=32).text("refresh every N steps"))
+                    .changed();
+                if changed {
+                    let kind = match s.preconditioner {
+                        0 => PreconditionerKind::Jacobi,
+                        1 => PreconditionerKind::Exact,
+                        2 => PreconditionerKind::Periodic { every: s.period },
+                        _ => PreconditionerKind::Async,
+                    };
+                    for e in &bodies {
+                        commands.entity(e).insert(PreconditionerOverride(kind));
+                    }
+                }
+                ui.separator();
+                ui.heading("Contact compliance");
+                let modes = [
+                    ("Factorized (node columns)", ComplianceMode::Factorized),
+                    ("Exact (fresh LDLT)", ComplianceMode::Exact),
+                    ("Diagonal (uncoupled)", ComplianceMode::Diagonal),
+                    ("Rest-precomputed dense", ComplianceMode::RestPrecomputed),
+                    ("Dense rows (paper CPU)", ComplianceMode::DenseRows),
+                ];
+                for (i, (n, m)) in modes.iter().enumerate() {
+                    if ui.radio_value(&mut s.compliance, i, *n).changed() {
+                        config.compliance = *m;
+                    }
+                }
+                ui.separator();
+                let col = |k: usize| s.history.iter().map(|r| r[k]).collect::<Vec<f32>>();
+                chart(ui, "FPS", &[("fps", col(0), egui::Color32::LIGHT_GREEN)]);
+                chart(
+                    ui,
+                    "CG iterations",
+                    &[("its", col(1), egui::Color32::LIGHT_BLUE)],
+                );
+                chart(ui, "contacts", &[("n", col(2), egui::Color32::YELLOW)]);
+                chart(
+                    ui,
+                    "time per phase (ms)",
+                    &[
+                        ("step", col(9), egui::Color32::WHITE),
+                        ("asm", col(3), egui::Color32::LIGHT_RED),
+                        ("fact", col(4), egui::Color32::from_rgb(255, 160, 60)),
+                        ("cg", col(5), egui::Color32::LIGHT_BLUE),
+                        ("det", col(6), egui::Color32::GRAY),
+                        ("W", col(7), egui::Color32::YELLOW),
+                        ("lcp+corr", col(8), egui::Color32::LIGHT_GREEN),
+                    ],
+                );
+                ui.label(format!(
+                    "factor age {} steps, LCP residual {:.1e} m, errors {}",
+                    diag.factor_age, diag.lcp_residual, diag.errors
+                ));
+                if let Some(l) = lens.iter().next() {
+                    ui.label(format!(
+                        "lens: {} nodes, {} tets",
+                        l.num_nodes(),
+                        l.mesh().num_tets()
+                    ));
+                }
+            });
         Ok(())
     }
 }

@@ -8,8 +8,8 @@
 //! ```
 
 use bevy_soft_tissue::contact::{ContactOther, ContactSide};
+use bevy_soft_tissue::core_prelude::*;
 use bevy_soft_tissue::mesh::generate::LENS_RADII;
-use bevy_soft_tissue::prelude::*;
 use std::time::Instant;
 
 fn contacts(body: &DeformableBody, n: usize) -> Vec<Contact> {
@@ -17,13 +17,19 @@ fn contacts(body: &DeformableBody, n: usize) -> Vec<Contact> {
     let mut verts: Vec<usize> = body.surface().vertices.clone();
     let pole = v3(0.0, 0.0, LENS_RADII[2]);
     verts.sort_by(|&a, &b| {
-        (body.positions()[a] - pole).norm().total_cmp(&(body.positions()[b] - pole).norm())
+        (body.positions()[a] - pole)
+            .norm()
+            .total_cmp(&(body.positions()[b] - pole).norm())
     });
     verts
         .iter()
         .take(n)
         .map(|&v| Contact {
-            a: ContactSide { body: 0, nodes: [v as u32, 0, 0], weights: [1.0, 0.0, 0.0] },
+            a: ContactSide {
+                body: 0,
+                nodes: [v as u32, 0, 0],
+                weights: [1.0, 0.0, 0.0],
+            },
             other: ContactOther::Tool(0),
             normal: v3(0.0, 0.0, -1.0),
             tangents: [v3(1.0, 0.0, 0.0), v3(0.0, 1.0, 0.0)],
@@ -43,21 +49,36 @@ fn median(mut v: Vec<f64>) -> f64 {
 
 fn main() -> Result<()> {
     let mesh = generate::ellipsoid(LENS_RADII, 12)?;
-    let settings = BodySettings { preconditioner: PreconditionerKind::Periodic { every: 1_000_000 }, ..Default::default() };
+    let settings = BodySettings {
+        preconditioner: PreconditionerKind::Periodic { every: 1_000_000 },
+        ..Default::default()
+    };
     let mut body = DeformableBody::new(mesh, Material::new(1000.0, 5e3, 0.45), settings)?;
     body.fix_where(|p| p.z < -2.0e-3);
     body.step(0.02)?;
-    println!("lens {} nodes; compliance build time (ms, median of 7), friction on (3 rows/contact)", body.num_nodes());
-    println!("{:>8} {:>6} {:>12} {:>16} {:>15} {:>9}", "contacts", "rows", "DenseRows", "Factorized cold", "Factorized warm", "speed-up");
+    println!(
+        "lens {} nodes; compliance build time (ms, median of 7), friction on (3 rows/contact)",
+        body.num_nodes()
+    );
+    println!(
+        "{:>8} {:>6} {:>12} {:>16} {:>15} {:>9}",
+        "contacts", "rows", "DenseRows", "Factorized cold", "Factorized warm", "speed-up"
+    );
     for n in [30, 60, 90, 130, 260] {
         let cs = contacts(&body, n);
         let mut dense = Vec::new();
         let mut cold = Vec::new();
         let mut warm = Vec::new();
         for _ in 0..7 {
-            for (mode, out) in [(ComplianceMode::DenseRows, &mut dense), (ComplianceMode::Factorized, &mut cold)] {
+            for (mode, out) in [
+                (ComplianceMode::DenseRows, &mut dense),
+                (ComplianceMode::Factorized, &mut cold),
+            ] {
                 // A new solver has empty caches: every node column is solved.
-                let mut solver = ContactSolver::new(ContactSettings { compliance: mode, ..Default::default() })?;
+                let mut solver = ContactSolver::new(ContactSettings {
+                    compliance: mode,
+                    ..Default::default()
+                })?;
                 solver.set_contacts(&cs, &[&body], 0.02)?;
                 let t0 = Instant::now();
                 solver.build_compliance(&[&body])?;
@@ -83,10 +104,23 @@ fn main() -> Result<()> {
                     j = sym.parent[j];
                 }
             }
-            println!("  mean path {:.1} nodes, union {} nodes, L blocks {}", total as f64 / n as f64, union.len(), sym.nnz_blocks());
+            println!(
+                "  mean path {:.1} nodes, union {} nodes, L blocks {}",
+                total as f64 / n as f64,
+                union.len(),
+                sym.nnz_blocks()
+            );
         }
         let (d, c, w) = (median(dense), median(cold), median(warm));
-        println!("{:>8} {:>6} {:>12.3} {:>16.3} {:>15.3} {:>8.1}x", n, 3 * n, d, c, w, d / c);
+        println!(
+            "{:>8} {:>6} {:>12.3} {:>16.3} {:>15.3} {:>8.1}x",
+            n,
+            3 * n,
+            d,
+            c,
+            w,
+            d / c
+        );
     }
     Ok(())
 }

@@ -10,8 +10,8 @@
 //! (default: all of them, plus `frozen`, a factor never refreshed after the first
 //! step: the cost of a step with no factorization anywhere, to compare `async` with).
 
+use bevy_soft_tissue::core_prelude::*;
 use bevy_soft_tissue::mesh::generate::LENS_RADII;
-use bevy_soft_tissue::prelude::*;
 use nalgebra::Rotation3;
 use std::process::ExitCode;
 
@@ -29,7 +29,9 @@ fn parse_kind(s: &str) -> Option<PreconditionerKind> {
         "jacobi" => PreconditionerKind::Jacobi,
         "exact" => PreconditionerKind::Exact,
         "async" => PreconditionerKind::Async,
-        p if p.starts_with("periodic") => PreconditionerKind::Periodic { every: p[8..].parse().ok()? },
+        p if p.starts_with("periodic") => PreconditionerKind::Periodic {
+            every: p[8..].parse().ok()?,
+        },
         _ => return None,
     })
 }
@@ -45,11 +47,17 @@ fn run(kind: PreconditionerKind, steps: usize) -> Result<()> {
     });
     let settings = BodySettings {
         preconditioner: kind,
-        cg: CgSettings { tolerance: 1e-6, max_iterations: 1000, warm_start: true },
+        cg: CgSettings {
+            tolerance: 1e-6,
+            max_iterations: 1000,
+            warm_start: true,
+        },
         ..Default::default()
     };
     let mut body = DeformableBody::new(mesh.clone(), material, settings)?;
-    let top: Vec<usize> = (0..mesh.num_vertices()).filter(|&i| mesh.positions()[i].z > 1.6e-3).collect();
+    let top: Vec<usize> = (0..mesh.num_vertices())
+        .filter(|&i| mesh.positions()[i].z > 1.6e-3)
+        .collect();
     body.fix_where(|p| p.z < -1.6e-3);
     let (mut asm, mut fac, mut pre, mut cg, mut total, mut its, mut ages) =
         (vec![], vec![], vec![], vec![], vec![], vec![], vec![]);
@@ -63,12 +71,19 @@ fn run(kind: PreconditionerKind, steps: usize) -> Result<()> {
             let p = mesh.positions()[i];
             body.drive_node(i, rot * v3(p.x, p.y, p.z - a * 1.5e-3))?;
         }
-        let busy = body.preconditioner().worker().is_some_and(|w| w.in_flight());
+        let busy = body
+            .preconditioner()
+            .worker()
+            .is_some_and(|w| w.in_flight());
         let t0 = std::time::Instant::now();
         let r = body.step(0.02)?;
         let ms = t0.elapsed().as_secs_f64() * 1e3;
         total.push(ms);
-        if busy { in_flight.push(ms) } else { idle.push(ms) }
+        if busy {
+            in_flight.push(ms)
+        } else {
+            idle.push(ms)
+        }
         asm.push(r.timings.assemble * 1e3);
         fac.push(r.timings.factorize * 1e3);
         pre.push(r.timings.precond_apply * 1e3);
@@ -76,17 +91,23 @@ fn run(kind: PreconditionerKind, steps: usize) -> Result<()> {
         its.push(r.cg.iterations as f64);
         ages.push(r.preconditioner.factor_age as f64);
         unconverged += usize::from(!r.cg.converged);
-        if body.positions().iter().any(|p| !p.iter().all(|c| c.is_finite())) {
+        if body
+            .positions()
+            .iter()
+            .any(|p| !p.iter().all(|c| c.is_finite()))
+        {
             return Err(SoftTissueError::NonFinite("positions"));
         }
     }
     let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
     println!(
         "{:<12} {:>9.3} {:>9.3} {:>9.3} {:>9.3} {:>9.3} {:>8.2} {:>7.2} {:>6}",
-        if kind == PreconditionerKind::Periodic { every: u32::MAX } {
+        if kind == (PreconditionerKind::Periodic { every: u32::MAX }) {
             "frozen".to_string()
         } else {
-            format!("{kind:?}").replace("Periodic { every: ", "every ").replace(" }", "")
+            format!("{kind:?}")
+                .replace("Periodic { every: ", "every ")
+                .replace(" }", "")
         },
         median(&mut total),
         median(&mut asm),
@@ -139,7 +160,9 @@ fn main() -> ExitCode {
         }
         i += 2;
     }
-    println!("lens 1183 nodes / 5184 tets, nucleus 5x, h = 0.02 s, {steps} steps; times are medians in ms");
+    println!(
+        "lens 1183 nodes / 5184 tets, nucleus 5x, h = 0.02 s, {steps} steps; times are medians in ms"
+    );
     println!(
         "{:<12} {:>9} {:>9} {:>9} {:>9} {:>9} {:>8} {:>7} {:>6}",
         "precond", "step", "assemble", "factor", "P apply", "CG total", "CG its", "age", "unconv"

@@ -16,6 +16,7 @@ use bevy::render::settings::{RenderCreation, WgpuSettings};
 use bevy::window::ExitCondition;
 use bevy_soft_tissue::contact::{ContactOther, ContactSide};
 use bevy_soft_tissue::gpu::GpuCompliance;
+use bevy_soft_tissue::math::Vec3 as DVec3;
 use bevy_soft_tissue::mesh::generate::LENS_RADII;
 use bevy_soft_tissue::plugin::GpuMode;
 use bevy_soft_tissue::prelude::*;
@@ -25,7 +26,7 @@ fn median(mut v: Vec<f64>) -> f64 {
     v[v.len() / 2]
 }
 
-fn main() -> Result<()> {
+fn main() -> bevy_soft_tissue::error::Result<()> {
     let mut app = App::new();
     app.add_plugins((
         MinimalPlugins,
@@ -33,7 +34,11 @@ fn main() -> Result<()> {
         bevy::image::ImagePlugin::default(),
         bevy::mesh::MeshPlugin,
         bevy::camera::CameraPlugin,
-        bevy::window::WindowPlugin { primary_window: None, exit_condition: ExitCondition::DontExit, ..Default::default() },
+        bevy::window::WindowPlugin {
+            primary_window: None,
+            exit_condition: ExitCondition::DontExit,
+            ..Default::default()
+        },
         RenderPlugin {
             render_creation: RenderCreation::Automatic(Box::new(WgpuSettings::default())),
             synchronous_pipeline_compilation: true,
@@ -42,7 +47,10 @@ fn main() -> Result<()> {
     ));
     app.finish();
     app.cleanup();
-    let (Some(device), Some(queue)) = (app.world().get_resource::<RenderDevice>(), app.world().get_resource::<RenderQueue>()) else {
+    let (Some(device), Some(queue)) = (
+        app.world().get_resource::<RenderDevice>(),
+        app.world().get_resource::<RenderQueue>(),
+    ) else {
         eprintln!("no render device");
         return Ok(());
     };
@@ -51,21 +59,35 @@ fn main() -> Result<()> {
     }
     let mut gpu = GpuCompliance::new(device.clone(), queue.clone(), GpuMode::On);
     let mesh = generate::ellipsoid(LENS_RADII, 12)?;
-    let settings = BodySettings { preconditioner: PreconditionerKind::Periodic { every: 1_000_000 }, ..Default::default() };
+    let settings = BodySettings {
+        preconditioner: PreconditionerKind::Periodic { every: 1_000_000 },
+        ..Default::default()
+    };
     let mut body = DeformableBody::new(mesh, Material::new(1000.0, 5e3, 0.45), settings)?;
     body.fix_where(|p| p.z < -2.0e-3);
     body.step(0.02)?;
     let mut verts: Vec<usize> = body.surface().vertices.clone();
     let pole = v3(0.0, 0.0, LENS_RADII[2]);
-    verts.sort_by(|&a, &b| (body.positions()[a] - pole).norm().total_cmp(&(body.positions()[b] - pole).norm()));
+    verts.sort_by(|&a, &b| {
+        (body.positions()[a] - pole)
+            .norm()
+            .total_cmp(&(body.positions()[b] - pole).norm())
+    });
     println!("compliance build time (ms, median of 5), friction on");
-    println!("{:>8} {:>14} {:>10} {:>10}", "contacts", "CPU Factorized", "GPU", "GPU/CPU");
+    println!(
+        "{:>8} {:>14} {:>10} {:>10}",
+        "contacts", "CPU Factorized", "GPU", "GPU/CPU"
+    );
     for n in [30, 60, 90, 130, 260] {
         let cs: Vec<Contact> = verts
             .iter()
             .take(n)
             .map(|&v| Contact {
-                a: ContactSide { body: 0, nodes: [v as u32, 0, 0], weights: [1.0, 0.0, 0.0] },
+                a: ContactSide {
+                    body: 0,
+                    nodes: [v as u32, 0, 0],
+                    weights: [1.0, 0.0, 0.0],
+                },
                 other: ContactOther::Tool(0),
                 normal: v3(0.0, 0.0, -1.0),
                 tangents: [v3(1.0, 0.0, 0.0), v3(0.0, 1.0, 0.0)],
@@ -73,7 +95,7 @@ fn main() -> Result<()> {
                 slip: [0.0, 0.0],
                 mu: 0.3,
                 point: body.positions()[v],
-                force: Vec3::zeros(),
+                force: DVec3::zeros(),
             })
             .collect();
         let (mut cpu_t, mut gpu_t) = (Vec::new(), Vec::new());

@@ -126,26 +126,26 @@ fn gram_blocks(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_
     let lb = paths[pb];
     if (lid == 0u) {
         // Paths end at the root of their tree: the shared part is a common suffix.
-        var common = 0u;
+        var shared_len = 0u;
         loop {
-            if (common >= la || common >= lb) {
+            if (shared_len >= la || shared_len >= lb) {
                 break;
             }
-            if (paths[pa + la - common] != paths[pb + lb - common]) {
+            if (paths[pa + la - shared_len] != paths[pb + lb - shared_len]) {
                 break;
             }
-            common++;
+            shared_len++;
         }
-        s_common = common;
+        s_common = shared_len;
     }
-    let common = workgroupUniformLoad(&s_common);
+    let shared_len = workgroupUniformLoad(&s_common);
     var acc: array<f32, 9>;
     for (var i = 0u; i < 9u; i++) {
         acc[i] = 0.0;
     }
-    for (var t = lid; t < common; t += WG) {
-        let ia = la - common + t;
-        let ib = lb - common + t;
+    for (var t = lid; t < shared_len; t += WG) {
+        let ia = la - shared_len + t;
+        let ib = lb - shared_len + t;
         let node = paths[pa + 1u + ia];
         let za = (a * params.stride + ia) * 9u;
         let zb = (b * params.stride + ib) * 9u;

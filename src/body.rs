@@ -542,9 +542,7 @@ impl DeformableBody {
             self.prescribed[i] = match self.constraint[i] {
                 NodeConstraint::Free => continue,
                 NodeConstraint::Fixed => -self.v[i] / h,
-                NodeConstraint::Driven => {
-                    ((self.drive_target[i] - self.x[i]) / h - self.v[i]) / h
-                }
+                NodeConstraint::Driven => ((self.drive_target[i] - self.x[i]) / h - self.v[i]) / h,
             };
         }
         let p = Arc::clone(&self.matrix.pattern);

@@ -57,7 +57,9 @@ pub enum SoftTissueError {
         volume: f64,
     },
     /// A tetrahedron has negative orientation and re-orientation was not requested.
-    #[error("tetrahedron {tet} is inverted (signed volume {volume:e}); enable re-orientation to fix it")]
+    #[error(
+        "tetrahedron {tet} is inverted (signed volume {volume:e}); enable re-orientation to fix it"
+    )]
     InvertedTet {
         /// Tetrahedron index.
         tet: usize,
@@ -109,7 +111,9 @@ pub enum SoftTissueError {
         reason: String,
     },
     /// The factorization met a non-positive pivot: the matrix is not SPD.
-    #[error("LDLᵀ factorization failed: pivot {pivot:e} at node {node} (matrix not positive definite)")]
+    #[error(
+        "LDLᵀ factorization failed: pivot {pivot:e} at node {node} (matrix not positive definite)"
+    )]
     NotPositiveDefinite {
         /// Node (in original numbering) where the pivot failed.
         node: usize,

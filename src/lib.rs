@@ -23,7 +23,7 @@
 //!
 //! ## Quick start (core only)
 //! ```
-//! use bevy_soft_tissue::prelude::*;
+//! use bevy_soft_tissue::core_prelude::*;
 //!
 //! let mesh = generate::box_mesh(v3(0.0, 0.0, 0.0), v3(0.1, 0.02, 0.02), [10, 2, 2]).unwrap();
 //! let settings = BodySettings { gravity: Some(v3(0.0, 0.0, -9.81)), ..Default::default() };
@@ -53,23 +53,34 @@ pub mod solver;
 
 pub use plugin::{SoftTissuePlugin, SoftTissueSystems};
 
-/// The most used items.
+/// The most used items, for Bevy apps: import it next to `bevy::prelude::*`
+/// (it exports no names that clash with Bevy's prelude; the core's `f64`
+/// math types are in [`core_prelude`] and [`math`]).
 pub mod prelude {
-    pub use crate::plugin::{
-        BodyContacts, ComplianceOverride, FixedNodes, PreconditionerOverride, SoftBody, SoftTissueConfig,
-        SoftTissueContacts, SoftTissueDiagnostics, SoftTissuePlugin, SoftTissueSystems, Tool, ToolReaction,
-    };
-    pub use crate::body::{BodySettings, NodeConstraint, DeformableBody, StepReport, StepTimings};
+    pub use crate::body::{BodySettings, DeformableBody, NodeConstraint, StepReport, StepTimings};
     pub use crate::contact::{
-        ComplianceMode, Contact, ContactReport, ContactSettings, ContactSolver, LcpSettings, Pose, RigidTool,
-        ToolShape,
+        ComplianceMode, Contact, ContactReport, ContactSettings, ContactSolver, LcpSettings, Pose,
+        RigidTool, ToolShape,
     };
-    pub use crate::error::{Result, SoftTissueError};
-    pub use crate::scene::Scene;
+    pub use crate::error::SoftTissueError;
     pub use crate::fem::RotationMethod;
     pub use crate::material::{Material, RayleighDamping, StiffnessField, Transition};
-    pub use crate::math::{Mat3, Vec3, v3};
+    pub use crate::math::v3;
     pub use crate::mesh::{Surface, TetMesh, ValidateOptions, generate, io};
+    pub use crate::plugin::{
+        BodyContacts, ComplianceOverride, FixedNodes, GpuMode, PreconditionerOverride, SoftBody,
+        SoftTissueConfig, SoftTissueContacts, SoftTissueDiagnostics, SoftTissuePlugin,
+        SoftTissueSystems, Tool, ToolReaction,
+    };
+    pub use crate::scene::Scene;
     pub use crate::solver::PreconditionerKind;
     pub use crate::solver::cg::{CgReport, CgSettings};
+}
+
+/// [`prelude`] plus the core's `f64` math types and `Result`, for code that
+/// uses the numerical core without Bevy's prelude.
+pub mod core_prelude {
+    pub use crate::error::Result;
+    pub use crate::math::{Mat3, Vec3};
+    pub use crate::prelude::*;
 }

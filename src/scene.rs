@@ -50,7 +50,10 @@ impl Scene {
     pub fn step(&mut self, h: f64) -> Result<ContactReport> {
         let touch = self.can_touch();
         for b in &mut self.bodies {
-            let rest_mode = b.settings().compliance.unwrap_or(self.contact.settings().compliance)
+            let rest_mode = b
+                .settings()
+                .compliance
+                .unwrap_or(self.contact.settings().compliance)
                 == crate::contact::ComplianceMode::RestPrecomputed;
             b.request_node_rotations(rest_mode && touch);
             b.assemble(h)?;

@@ -1,8 +1,8 @@
 //! Acceptance tests of the contact pipeline: compliance accuracy, contact
 //! conditions, friction, the paper's Fig. 3 setting, two bodies, bad input.
 
+use bevy_soft_tissue::core_prelude::*;
 use bevy_soft_tissue::mesh::generate::LENS_RADII;
-use bevy_soft_tissue::prelude::*;
 use nalgebra::{DMatrix, Isometry3, Translation3, UnitQuaternion};
 
 fn lens(cells: usize, kind: PreconditionerKind) -> DeformableBody {
@@ -16,7 +16,15 @@ fn lens(cells: usize, kind: PreconditionerKind) -> DeformableBody {
             transition: Transition::Sharp,
         })
         .with_damping(1.0, 0.01);
-    DeformableBody::new(mesh, material, BodySettings { preconditioner: kind, ..Default::default() }).unwrap()
+    DeformableBody::new(
+        mesh,
+        material,
+        BodySettings {
+            preconditioner: kind,
+            ..Default::default()
+        },
+    )
+    .unwrap()
 }
 
 fn at(x: f64, y: f64, z: f64) -> Pose {
@@ -26,19 +34,31 @@ fn at(x: f64, y: f64, z: f64) -> Pose {
 /// A lens pressed by a sphere from above (contacts with friction) after being
 /// turned, so the factor's warp is not the identity.
 fn pressed_lens(kind: PreconditionerKind, mode: ComplianceMode) -> (Scene, f64) {
-    let mut scene = Scene::new(ContactSettings { compliance: mode, alarm_distance: 3e-4, ..Default::default() }).unwrap();
+    // Reuse 0: W must come from the preconditioner's current factor.
+    let mut scene = Scene::new(ContactSettings {
+        compliance: mode,
+        alarm_distance: 3e-4,
+        factor_reuse: 0,
+        ..Default::default()
+    })
+    .unwrap();
     let mut body = lens(8, kind);
     body.fix_where(|p| p.z < -1.8e-3);
     scene.add_body(body);
-    let tool = RigidTool::new(ToolShape::Sphere { radius: 3e-3 }, at(0.5e-3, 0.0, 2.25e-3 + 3e-3 + 1e-4))
-        .unwrap()
-        .with_friction(0.3)
-        .unwrap();
+    let tool = RigidTool::new(
+        ToolShape::Sphere { radius: 3e-3 },
+        at(0.5e-3, 0.0, 2.25e-3 + 3e-3 + 1e-4),
+    )
+    .unwrap()
+    .with_friction(0.3)
+    .unwrap();
     scene.add_tool(tool);
     let h = 0.01;
     for s in 0..12 {
         let z = 2.25e-3 + 3e-3 - 1e-4 * s as f64;
-        scene.tools[0].set_pose(at(0.5e-3 + 2e-5 * s as f64, 0.0, z)).unwrap();
+        scene.tools[0]
+            .set_pose(at(0.5e-3 + 2e-5 * s as f64, 0.0, z))
+            .unwrap();
         scene.step(h).unwrap();
     }
     (scene, h)
@@ -46,7 +66,11 @@ fn pressed_lens(kind: PreconditionerKind, mode: ComplianceMode) -> (Scene, f64) 
 
 fn dense_solve_matrix(f: &bevy_soft_tissue::solver::ldlt::LdltFactor, n: usize) -> DMatrix<f64> {
     let mut inv = DMatrix::zeros(3 * n, 3 * n);
-    let (mut b, mut x, mut t) = (vec![Vec3::zeros(); n], vec![Vec3::zeros(); n], vec![Vec3::zeros(); n]);
+    let (mut b, mut x, mut t) = (
+        vec![Vec3::zeros(); n],
+        vec![Vec3::zeros(); n],
+        vec![Vec3::zeros(); n],
+    );
     for k in 0..n {
         for c in 0..3 {
             b[k][c] = 1.0;
@@ -62,7 +86,13 @@ fn dense_solve_matrix(f: &bevy_soft_tissue::solver::ldlt::LdltFactor, n: usize) 
     inv
 }
 
-fn reference_w(entries: &[bevy_soft_tissue::contact::JacEntry], inv: &DMatrix<f64>, m: usize, h: f64, use_j: bool) -> DMatrix<f64> {
+fn reference_w(
+    entries: &[bevy_soft_tissue::contact::JacEntry],
+    inv: &DMatrix<f64>,
+    m: usize,
+    h: f64,
+    use_j: bool,
+) -> DMatrix<f64> {
     let n3 = inv.nrows();
     let mut jm = DMatrix::zeros(m, n3);
     for e in entries {
@@ -96,9 +126,17 @@ fn factorized_w_matches_dense_reference_from_same_factor() {
         scene.contact.detect(&[b], &[t], h).unwrap();
         scene.contact.build_compliance(&[b]).unwrap();
         let (w, m) = scene.contact.delassus();
-        assert!(scene.contact.report().friction_contacts > 3, "{:?}", scene.contact.report());
+        assert!(
+            scene.contact.report().friction_contacts > 3,
+            "{:?}",
+            scene.contact.report()
+        );
         let st = b.preconditioner().factor_state().unwrap();
-        assert!(st.warped || mode == ComplianceMode::DenseRows || b.report().preconditioner.factor_age == 0);
+        assert!(
+            st.warped
+                || mode == ComplianceMode::DenseRows
+                || b.report().preconditioner.factor_age == 0
+        );
         let inv = dense_solve_matrix(&st.factor, b.num_nodes());
         let wref = reference_w(scene.contact.jacobian(0), &inv, m, h, true);
         let err = max_rel_diff(w, &wref);
@@ -159,30 +197,59 @@ fn penetration(scene: &Scene) -> f64 {
 
 #[test]
 fn contact_conditions_hold_after_every_step() {
-    let mut scene = Scene::new(ContactSettings { alarm_distance: 2e-4, ..Default::default() }).unwrap();
+    let mut scene = Scene::new(ContactSettings {
+        alarm_distance: 2e-4,
+        ..Default::default()
+    })
+    .unwrap();
     let mut body = lens(8, PreconditionerKind::Async);
     body.fix_where(|p| p.z < -1.8e-3);
     let tol = 0.01 * body.mesh().min_edge_length();
     scene.add_body(body);
     let pose = |s: usize| {
         let z = 2.25e-3 + 1e-3 + 1e-4 - 2.5e-5 * s as f64;
-        let rot = UnitQuaternion::from_euler_angles(0.0, 0.0, std::f64::consts::FRAC_PI_2 + 0.01 * s as f64);
+        let rot = UnitQuaternion::from_euler_angles(
+            0.0,
+            0.0,
+            std::f64::consts::FRAC_PI_2 + 0.01 * s as f64,
+        );
         Isometry3::from_parts(Translation3::new(3e-5 * s as f64, 0.0, z), rot)
     };
-    scene.add_tool(RigidTool::new(ToolShape::Capsule { half_height: 2e-3, radius: 1e-3 }, pose(0)).unwrap().with_friction(0.2).unwrap());
+    scene.add_tool(
+        RigidTool::new(
+            ToolShape::Capsule {
+                half_height: 2e-3,
+                radius: 1e-3,
+            },
+            pose(0),
+        )
+        .unwrap()
+        .with_friction(0.2)
+        .unwrap(),
+    );
     let mut active = 0;
     let mut pushed = false;
     for s in 0..80 {
         scene.tools[0].set_pose(pose(s)).unwrap();
         let r = scene.step(0.01).unwrap();
         let pen = active_penetration(&scene);
-        assert!(pen <= tol, "step {s}: penetration at active contacts {pen:e} > {tol:e}");
+        assert!(
+            pen <= tol,
+            "step {s}: penetration at active contacts {pen:e} > {tol:e}"
+        );
         let any = penetration(&scene);
-        assert!(any <= 10.0 * tol, "step {s}: penetration of some vertex {any:e} > {:e}", 10.0 * tol);
+        assert!(
+            any <= 10.0 * tol,
+            "step {s}: penetration of some vertex {any:e} > {:e}",
+            10.0 * tol
+        );
         for c in scene.contact.contacts() {
             assert!(c.force.x >= 0.0);
             let t = (c.force.y * c.force.y + c.force.z * c.force.z).sqrt();
-            assert!(t <= c.mu * c.force.x * (1.0 + 1e-9) + 1e-15, "outside the friction cone");
+            assert!(
+                t <= c.mu * c.force.x * (1.0 + 1e-9) + 1e-15,
+                "outside the friction cone"
+            );
         }
         if r.contacts > 0 {
             active += 1;
@@ -206,16 +273,35 @@ fn block_slide(theta_deg: f64, mu: f64) -> f64 {
         gravity: Some(v3(g * th.sin(), 0.0, -g * th.cos())),
         ..Default::default()
     };
-    let body = DeformableBody::new(mesh, Material::new(1000.0, 5e4, 0.3).with_damping(2.0, 0.0), settings).unwrap();
-    let mut scene = Scene::new(ContactSettings { alarm_distance: 2e-4, ..Default::default() }).unwrap();
+    let body = DeformableBody::new(
+        mesh,
+        Material::new(1000.0, 5e4, 0.3).with_damping(2.0, 0.0),
+        settings,
+    )
+    .unwrap();
+    let mut scene = Scene::new(ContactSettings {
+        alarm_distance: 2e-4,
+        ..Default::default()
+    })
+    .unwrap();
     scene.add_body(body);
-    let plane = RigidTool::new(ToolShape::Box { half_extents: v3(0.2, 0.2, 0.01) }, at(0.0, 0.0, -0.01 - 1e-5)).unwrap().with_friction(mu).unwrap();
+    let plane = RigidTool::new(
+        ToolShape::Box {
+            half_extents: v3(0.2, 0.2, 0.01),
+        },
+        at(0.0, 0.0, -0.01 - 1e-5),
+    )
+    .unwrap()
+    .with_friction(mu)
+    .unwrap();
     scene.add_tool(plane);
-    let x0: f64 = scene.bodies[0].positions().iter().map(|p| p.x).sum::<f64>() / scene.bodies[0].num_nodes() as f64;
+    let x0: f64 = scene.bodies[0].positions().iter().map(|p| p.x).sum::<f64>()
+        / scene.bodies[0].num_nodes() as f64;
     for _ in 0..60 {
         scene.step(0.01).unwrap();
     }
-    let x1: f64 = scene.bodies[0].positions().iter().map(|p| p.x).sum::<f64>() / scene.bodies[0].num_nodes() as f64;
+    let x1: f64 = scene.bodies[0].positions().iter().map(|p| p.x).sum::<f64>()
+        / scene.bodies[0].num_nodes() as f64;
     x1 - x0
 }
 
@@ -229,7 +315,10 @@ fn friction_sticks_below_and_slides_above_the_cone() {
     let th = 35f64.to_radians();
     let expected = 0.5 * 9.81 * (th.sin() - mu * th.cos()) * 0.6f64.powi(2);
     assert!(stick.abs() < 0.02 * expected, "stick moved {stick}");
-    assert!(slide > 0.5 * expected, "slide moved {slide}, expected ≈ {expected}");
+    assert!(
+        slide > 0.5 * expected,
+        "slide moved {slide}, expected ≈ {expected}"
+    );
 }
 
 /// Four boxes around a square hole: the paper's rigid plate.
@@ -238,10 +327,34 @@ fn plate_with_hole(half_hole: f64) -> Vec<RigidTool> {
     let w = 0.5 * (big - half_hole);
     let c = half_hole + w;
     vec![
-        RigidTool::new(ToolShape::Box { half_extents: v3(w, big, t) }, at(c, 0.0, 0.0)).unwrap(),
-        RigidTool::new(ToolShape::Box { half_extents: v3(w, big, t) }, at(-c, 0.0, 0.0)).unwrap(),
-        RigidTool::new(ToolShape::Box { half_extents: v3(half_hole, w, t) }, at(0.0, c, 0.0)).unwrap(),
-        RigidTool::new(ToolShape::Box { half_extents: v3(half_hole, w, t) }, at(0.0, -c, 0.0)).unwrap(),
+        RigidTool::new(
+            ToolShape::Box {
+                half_extents: v3(w, big, t),
+            },
+            at(c, 0.0, 0.0),
+        )
+        .unwrap(),
+        RigidTool::new(
+            ToolShape::Box {
+                half_extents: v3(w, big, t),
+            },
+            at(-c, 0.0, 0.0),
+        )
+        .unwrap(),
+        RigidTool::new(
+            ToolShape::Box {
+                half_extents: v3(half_hole, w, t),
+            },
+            at(0.0, c, 0.0),
+        )
+        .unwrap(),
+        RigidTool::new(
+            ToolShape::Box {
+                half_extents: v3(half_hole, w, t),
+            },
+            at(0.0, -c, 0.0),
+        )
+        .unwrap(),
     ]
 }
 
@@ -254,7 +367,12 @@ fn paper_fig3_lens_through_hole_every_mode() {
         ComplianceMode::RestPrecomputed,
         ComplianceMode::DenseRows,
     ] {
-        let mut scene = Scene::new(ContactSettings { compliance: mode, alarm_distance: 5e-4, ..Default::default() }).unwrap();
+        let mut scene = Scene::new(ContactSettings {
+            compliance: mode,
+            alarm_distance: 5e-4,
+            ..Default::default()
+        })
+        .unwrap();
         let mut body = lens(6, PreconditionerKind::Async);
         body.translate(v3(0.0, 0.0, 2.25e-3 + 0.6e-3));
         let tol = 0.01 * body.mesh().min_edge_length();
@@ -262,38 +380,81 @@ fn paper_fig3_lens_through_hole_every_mode() {
         for t in plate_with_hole(3.8e-3) {
             scene.add_tool(t);
         }
-        let sphere = scene.add_tool(RigidTool::new(ToolShape::Sphere { radius: 2.5e-3 }, at(0.0, 0.0, 8e-3)).unwrap().with_friction(0.1).unwrap());
+        let sphere = scene.add_tool(
+            RigidTool::new(ToolShape::Sphere { radius: 2.5e-3 }, at(0.0, 0.0, 8e-3))
+                .unwrap()
+                .with_friction(0.1)
+                .unwrap(),
+        );
         let mut max_contacts = 0;
         for s in 0..500 {
             let z = 8e-3 - 2.4e-5 * s as f64;
             scene.tools[sphere].set_pose(at(0.0, 0.0, z)).unwrap();
-            let r = scene.step(0.01).unwrap_or_else(|e| panic!("{mode:?} step {s}: {e}"));
+            let r = scene
+                .step(0.01)
+                .unwrap_or_else(|e| panic!("{mode:?} step {s}: {e}"));
             max_contacts = max_contacts.max(r.contacts);
             let b = &scene.bodies[0];
-            assert!(b.positions().iter().all(|p| p.iter().all(|c| c.is_finite())), "{mode:?}: NaN at step {s}");
+            assert!(
+                b.positions()
+                    .iter()
+                    .all(|p| p.iter().all(|c| c.is_finite())),
+                "{mode:?}: NaN at step {s}"
+            );
             let pen = penetration(&scene);
-            assert!(pen <= tol, "{mode:?} step {s}: penetration {pen:e} > {tol:e}; {r:?}");
+            assert!(
+                pen <= tol,
+                "{mode:?} step {s}: penetration {pen:e} > {tol:e}; {r:?}"
+            );
         }
-        let zc: f64 = scene.bodies[0].positions().iter().map(|p| p.z).sum::<f64>() / scene.bodies[0].num_nodes() as f64;
+        let zc: f64 = scene.bodies[0].positions().iter().map(|p| p.z).sum::<f64>()
+            / scene.bodies[0].num_nodes() as f64;
         println!("{mode:?}: lens centre z = {zc:e}, max contacts {max_contacts}");
         assert!(max_contacts > 20);
-        assert!(zc < 0.0, "{mode:?}: the lens did not pass the plate (z = {zc})");
+        assert!(
+            zc < 0.0,
+            "{mode:?}: the lens did not pass the plate (z = {zc})"
+        );
     }
 }
 
 #[test]
 fn two_bodies_pressed_together() {
-    let lower = generate::box_mesh(v3(-4e-3, -4e-3, -4e-3), v3(4e-3, 4e-3, 0.0), [4, 4, 2]).unwrap();
-    let upper = generate::box_mesh(v3(-3e-3, -3e-3, 0.05e-3), v3(3e-3, 3e-3, 4e-3), [3, 3, 2]).unwrap();
+    let lower =
+        generate::box_mesh(v3(-4e-3, -4e-3, -4e-3), v3(4e-3, 4e-3, 0.0), [4, 4, 2]).unwrap();
+    let upper =
+        generate::box_mesh(v3(-3e-3, -3e-3, 0.05e-3), v3(3e-3, 3e-3, 4e-3), [3, 3, 2]).unwrap();
     let g = Some(v3(0.0, 0.0, -9.81));
-    let mut a = DeformableBody::new(lower, Material::new(1000.0, 2e4, 0.3), BodySettings { gravity: g, ..Default::default() }).unwrap();
+    let mut a = DeformableBody::new(
+        lower,
+        Material::new(1000.0, 2e4, 0.3),
+        BodySettings {
+            gravity: g,
+            ..Default::default()
+        },
+    )
+    .unwrap();
     a.fix_where(|p| p.z < -4e-3 + 1e-9);
-    let mut b = DeformableBody::new(upper, Material::new(1000.0, 2e4, 0.3), BodySettings { gravity: g, ..Default::default() }).unwrap();
-    let top: Vec<usize> = (0..b.num_nodes()).filter(|&i| b.mesh().positions()[i].z > 4e-3 - 1e-9).collect();
+    let mut b = DeformableBody::new(
+        upper,
+        Material::new(1000.0, 2e4, 0.3),
+        BodySettings {
+            gravity: g,
+            ..Default::default()
+        },
+    )
+    .unwrap();
+    let top: Vec<usize> = (0..b.num_nodes())
+        .filter(|&i| b.mesh().positions()[i].z > 4e-3 - 1e-9)
+        .collect();
     for &i in &top {
         b.set_external_force(i, v3(0.0, 0.0, -2e-5)).unwrap();
     }
-    let mut scene = Scene::new(ContactSettings { alarm_distance: 2e-4, ..Default::default() }).unwrap();
+    let mut scene = Scene::new(ContactSettings {
+        alarm_distance: 2e-4,
+        ..Default::default()
+    })
+    .unwrap();
     scene.add_body(a);
     scene.add_body(b);
     let tol = 0.01 * scene.bodies[1].mesh().min_edge_length();
@@ -306,18 +467,33 @@ fn two_bodies_pressed_together() {
         touching += 1;
         let fa = scene.contact.body_force(0);
         let fb = scene.contact.body_force(1);
-        assert!((fa + fb).norm() <= 1e-9 * fa.norm().max(fb.norm()), "step {s}: {fa:?} vs {fb:?}");
+        assert!(
+            (fa + fb).norm() <= 1e-9 * fa.norm().max(fb.norm()),
+            "step {s}: {fa:?} vs {fb:?}"
+        );
         assert!(fb.z > 0.0, "the lower body pushes the upper one up");
         // Re-detect at the corrected positions: no vertex deeper than the tolerance.
         let (ba, bb) = (&scene.bodies[0], &scene.bodies[1]);
-        let mut probe = ContactSolver::new(ContactSettings { alarm_distance: 2e-4, ..Default::default() }).unwrap();
+        let mut probe = ContactSolver::new(ContactSettings {
+            alarm_distance: 2e-4,
+            ..Default::default()
+        })
+        .unwrap();
         probe.detect(&[ba, bb], &[], 0.003).unwrap();
-        let worst = probe.contacts().iter().map(|c| -c.gap).fold(0.0f64, f64::max);
+        let worst = probe
+            .contacts()
+            .iter()
+            .map(|c| -c.gap)
+            .fold(0.0f64, f64::max);
         assert!(worst <= tol, "step {s}: penetration {worst:e}");
     }
     assert!(touching > 100, "{touching}");
     // The upper body rests on the lower one instead of falling through.
-    let min_z = scene.bodies[1].positions().iter().map(|p| p.z).fold(f64::INFINITY, f64::min);
+    let min_z = scene.bodies[1]
+        .positions()
+        .iter()
+        .map(|p| p.z)
+        .fold(f64::INFINITY, f64::min);
     assert!(min_z > -0.5e-3, "upper body sank to {min_z}");
 }
 
@@ -327,31 +503,83 @@ fn bad_tools_and_poses_are_errors() {
     let bad = [
         ToolShape::Sphere { radius: 0.0 },
         ToolShape::Sphere { radius: f64::NAN },
-        ToolShape::Capsule { half_height: -1.0, radius: 1.0 },
-        ToolShape::Box { half_extents: v3(1.0, 0.0, 1.0) },
-        ToolShape::ConvexHull { points: vec![Vec3::zeros(); 3] },
-        ToolShape::ConvexHull { points: vec![v3(0., 0., 0.), v3(1., 0., 0.), v3(0., 1., 0.), v3(1., 1., 0.)] },
-        ToolShape::ConvexHull { points: vec![v3(0., 0., 0.), v3(1., 0., 0.), v3(0., 1., 0.), v3(0., 0., f64::NAN)] },
-        ToolShape::TriMesh { vertices: vec![Vec3::zeros(); 4], indices: vec![[0, 1, 9]; 4] },
-        ToolShape::TriMesh { vertices: vec![Vec3::zeros(); 4], indices: vec![[0, 1, 1]; 4] },
-        ToolShape::TriMesh { vertices: vec![], indices: vec![] },
+        ToolShape::Capsule {
+            half_height: -1.0,
+            radius: 1.0,
+        },
+        ToolShape::Box {
+            half_extents: v3(1.0, 0.0, 1.0),
+        },
+        ToolShape::ConvexHull {
+            points: vec![Vec3::zeros(); 3],
+        },
+        ToolShape::ConvexHull {
+            points: vec![
+                v3(0., 0., 0.),
+                v3(1., 0., 0.),
+                v3(0., 1., 0.),
+                v3(1., 1., 0.),
+            ],
+        },
+        ToolShape::ConvexHull {
+            points: vec![
+                v3(0., 0., 0.),
+                v3(1., 0., 0.),
+                v3(0., 1., 0.),
+                v3(0., 0., f64::NAN),
+            ],
+        },
+        ToolShape::TriMesh {
+            vertices: vec![Vec3::zeros(); 4],
+            indices: vec![[0, 1, 9]; 4],
+        },
+        ToolShape::TriMesh {
+            vertices: vec![Vec3::zeros(); 4],
+            indices: vec![[0, 1, 1]; 4],
+        },
+        ToolShape::TriMesh {
+            vertices: vec![],
+            indices: vec![],
+        },
     ];
     for s in bad {
-        assert!(matches!(RigidTool::new(s.clone(), pose), Err(SoftTissueError::InvalidShape(_))), "accepted {s:?}");
+        assert!(
+            matches!(
+                RigidTool::new(s.clone(), pose),
+                Err(SoftTissueError::InvalidShape(_))
+            ),
+            "accepted {s:?}"
+        );
     }
     let nan_pose = at(f64::NAN, 0.0, 0.0);
-    assert!(matches!(RigidTool::new(ToolShape::Sphere { radius: 1.0 }, nan_pose), Err(SoftTissueError::NonFinite(_))));
+    assert!(matches!(
+        RigidTool::new(ToolShape::Sphere { radius: 1.0 }, nan_pose),
+        Err(SoftTissueError::NonFinite(_))
+    ));
     let mut t = RigidTool::new(ToolShape::Sphere { radius: 1.0 }, pose).unwrap();
     assert!(t.set_pose(nan_pose).is_err());
     assert!(t.set_friction(-0.1).is_err());
     assert!(t.set_friction(f64::NAN).is_err());
-    assert!(ContactSolver::new(ContactSettings { alarm_distance: 0.0, ..Default::default() }).is_err());
+    assert!(
+        ContactSolver::new(ContactSettings {
+            alarm_distance: 0.0,
+            ..Default::default()
+        })
+        .is_err()
+    );
     let mut s = ContactSettings::default();
     s.lcp.over_relaxation = 2.5;
     assert!(ContactSolver::new(s).is_err());
     // Good shapes answer signed distances with outward normals.
     let hull = RigidTool::new(
-        ToolShape::ConvexHull { points: vec![v3(0., 0., 0.), v3(1., 0., 0.), v3(0., 1., 0.), v3(0., 0., 1.)] },
+        ToolShape::ConvexHull {
+            points: vec![
+                v3(0., 0., 0.),
+                v3(1., 0., 0.),
+                v3(0., 1., 0.),
+                v3(0., 0., 1.),
+            ],
+        },
         pose,
     )
     .unwrap();
@@ -364,13 +592,25 @@ fn bad_tools_and_poses_are_errors() {
 #[test]
 fn no_friction_rows_when_mu_is_zero_and_no_work_without_contact() {
     let (scene, _) = pressed_lens(PreconditionerKind::Async, ComplianceMode::Factorized);
-    assert_eq!(scene.contact.report().rows, 3 * scene.contact.report().contacts);
+    assert_eq!(
+        scene.contact.report().rows,
+        3 * scene.contact.report().contacts
+    );
     let mut scene = Scene::new(ContactSettings::default()).unwrap();
     scene.add_body(lens(6, PreconditionerKind::Async));
-    scene.add_tool(RigidTool::new(ToolShape::Sphere { radius: 3e-3 }, at(0.0, 0.0, 2.25e-3 + 3e-3 - 2e-4)).unwrap());
+    scene.add_tool(
+        RigidTool::new(
+            ToolShape::Sphere { radius: 3e-3 },
+            at(0.0, 0.0, 2.25e-3 + 3e-3 - 2e-4),
+        )
+        .unwrap(),
+    );
     let r = scene.step(0.01).unwrap();
     assert!(r.contacts > 0);
-    assert_eq!(r.rows, r.contacts, "frictionless contacts must have one row each");
+    assert_eq!(
+        r.rows, r.contacts,
+        "frictionless contacts must have one row each"
+    );
     assert_eq!(r.friction_contacts, 0);
     // RigidTool far away: detection tests no vertex, nothing else runs.
     scene.tools[0].set_pose(at(1.0, 0.0, 0.0)).unwrap();
@@ -384,7 +624,13 @@ fn node_columns_are_reused_while_the_factor_is_unchanged() {
     let mut body = lens(8, PreconditionerKind::Periodic { every: 1000 });
     body.fix_where(|p| p.z < -1.8e-3);
     scene.add_body(body);
-    scene.add_tool(RigidTool::new(ToolShape::Sphere { radius: 3e-3 }, at(0.0, 0.0, 2.25e-3 + 3e-3 - 1e-4)).unwrap());
+    scene.add_tool(
+        RigidTool::new(
+            ToolShape::Sphere { radius: 3e-3 },
+            at(0.0, 0.0, 2.25e-3 + 3e-3 - 1e-4),
+        )
+        .unwrap(),
+    );
     let first = scene.step(0.01).unwrap();
     assert!(first.solves > 0 && first.contacts > 0);
     let second = scene.step(0.01).unwrap();
@@ -393,15 +639,31 @@ fn node_columns_are_reused_while_the_factor_is_unchanged() {
     assert!(second.gram_blocks < first.gram_blocks);
 }
 
-
 #[test]
 fn rest_precomputed_refuses_large_meshes() {
     let mesh = generate::box_mesh(v3(0.0, 0.0, 0.0), v3(0.02, 0.02, 0.02), [13, 13, 13]).unwrap();
-    assert!(mesh.num_vertices() > bevy_soft_tissue::contact::compliance::REST_PRECOMPUTED_MAX_NODES);
-    let body = DeformableBody::new(mesh, Material::new(1000.0, 1e4, 0.3), BodySettings::default()).unwrap();
-    let mut scene = Scene::new(ContactSettings { compliance: ComplianceMode::RestPrecomputed, ..Default::default() }).unwrap();
+    assert!(
+        mesh.num_vertices() > bevy_soft_tissue::contact::compliance::REST_PRECOMPUTED_MAX_NODES
+    );
+    let body = DeformableBody::new(
+        mesh,
+        Material::new(1000.0, 1e4, 0.3),
+        BodySettings::default(),
+    )
+    .unwrap();
+    let mut scene = Scene::new(ContactSettings {
+        compliance: ComplianceMode::RestPrecomputed,
+        ..Default::default()
+    })
+    .unwrap();
     scene.add_body(body);
-    scene.add_tool(RigidTool::new(ToolShape::Sphere { radius: 5e-3 }, at(0.01, 0.01, 0.02 + 5e-3 - 5e-5)).unwrap());
+    scene.add_tool(
+        RigidTool::new(
+            ToolShape::Sphere { radius: 5e-3 },
+            at(0.01, 0.01, 0.02 + 5e-3 - 5e-5),
+        )
+        .unwrap(),
+    );
     let err = scene.step(0.01).unwrap_err();
     assert!(matches!(err, SoftTissueError::TooLarge { .. }), "{err}");
 }

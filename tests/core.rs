@@ -3,11 +3,11 @@
 
 #![allow(clippy::needless_range_loop)]
 
+use bevy_soft_tissue::core_prelude::*;
 use bevy_soft_tissue::fem::Element;
 use bevy_soft_tissue::fem::assembly::{BlockCsr, BlockPattern};
 use bevy_soft_tissue::math::polar_rotation;
 use bevy_soft_tissue::mesh::generate::{EyeShell, Incision, LENS_RADII};
-use bevy_soft_tissue::prelude::*;
 use bevy_soft_tissue::solver::ldlt::LdltSymbolic;
 use nalgebra::{Rotation3, Unit};
 use std::sync::Arc;
@@ -31,7 +31,8 @@ fn rigid_motion_gives_zero_elastic_force() {
             preconditioner: PreconditionerKind::None,
             ..Default::default()
         };
-        let mut body = DeformableBody::new(mesh.clone(), Material::new(1000.0, 1e5, 0.3), settings).unwrap();
+        let mut body =
+            DeformableBody::new(mesh.clone(), Material::new(1000.0, 1e5, 0.3), settings).unwrap();
         let n = body.num_nodes();
         let mut f = vec![Vec3::zeros(); n];
         for deg in [0.0, 30.0, 90.0, 135.0, 179.0, 180.0] {
@@ -70,11 +71,20 @@ fn uniaxial_stretch_recovers_young_and_poisson() {
         preconditioner: PreconditionerKind::None,
         ..Default::default()
     };
-    let mut body = DeformableBody::new(mesh.clone(), Material::new(1000.0, young, nu), body_settings).unwrap();
+    let mut body = DeformableBody::new(
+        mesh.clone(),
+        Material::new(1000.0, young, nu),
+        body_settings,
+    )
+    .unwrap();
     let n = body.num_nodes();
     // Pure longitudinal strain u = (εx, 0, 0): σxx = (λ+2μ)ε, σyy = λε.
     let eps = 1e-7;
-    let x: Vec<Vec3> = mesh.positions().iter().map(|p| v3(p.x * (1.0 + eps), p.y, p.z)).collect();
+    let x: Vec<Vec3> = mesh
+        .positions()
+        .iter()
+        .map(|p| v3(p.x * (1.0 + eps), p.y, p.z))
+        .collect();
     body.set_state(&x, &vec![Vec3::zeros(); n]).unwrap();
     let mut f = vec![Vec3::zeros(); n];
     body.elastic_forces(&mut f);
@@ -93,13 +103,22 @@ fn uniaxial_stretch_recovers_young_and_poisson() {
     let lambda_plus_2mu = sxx / eps;
     let young_measured =
         lambda_plus_2mu * (1.0 + nu_measured) * (1.0 - 2.0 * nu_measured) / (1.0 - nu_measured);
-    assert!(((young_measured - young) / young).abs() < 1e-6, "E {young_measured}");
+    assert!(
+        ((young_measured - young) / young).abs() < 1e-6,
+        "E {young_measured}"
+    );
     assert!(((nu_measured - nu) / nu).abs() < 1e-6, "ν {nu_measured}");
     // Uniaxial stress field: lateral faces free, axial stress E ε.
     let x: Vec<Vec3> = mesh
         .positions()
         .iter()
-        .map(|p| v3(p.x * (1.0 + eps), p.y * (1.0 - nu * eps), p.z * (1.0 - nu * eps)))
+        .map(|p| {
+            v3(
+                p.x * (1.0 + eps),
+                p.y * (1.0 - nu * eps),
+                p.z * (1.0 - nu * eps),
+            )
+        })
         .collect();
     body.set_state(&x, &vec![Vec3::zeros(); n]).unwrap();
     body.elastic_forces(&mut f);
@@ -151,10 +170,16 @@ fn cantilever_converges_to_euler_bernoulli() {
     for cells in [[15, 3, 3], [30, 6, 6], [60, 12, 12]] {
         let (tip, eb) = cantilever_tip(cells);
         let err = (tip - eb).abs() / eb;
-        println!("cantilever {cells:?}: tip {tip:.4e} m, Euler–Bernoulli {eb:.4e} m, error {:.1} %", 100.0 * err);
+        println!(
+            "cantilever {cells:?}: tip {tip:.4e} m, Euler–Bernoulli {eb:.4e} m, error {:.1} %",
+            100.0 * err
+        );
         errors.push(err);
     }
-    assert!(errors[1] < errors[0] && errors[2] < errors[1], "errors {errors:?}");
+    assert!(
+        errors[1] < errors[0] && errors[2] < errors[1],
+        "errors {errors:?}"
+    );
     assert!(errors[2] < 0.10, "finest error {:?}", errors[2]);
 }
 
@@ -198,8 +223,12 @@ fn lens_iterations(kind: PreconditionerKind, steps: usize) -> (f64, f64) {
         ..Default::default()
     };
     let mut body = DeformableBody::new(mesh.clone(), lens_material(), settings).unwrap();
-    let top: Vec<usize> = (0..mesh.num_vertices()).filter(|&i| mesh.positions()[i].z > 1.6e-3).collect();
-    let bottom: Vec<usize> = (0..mesh.num_vertices()).filter(|&i| mesh.positions()[i].z < -1.6e-3).collect();
+    let top: Vec<usize> = (0..mesh.num_vertices())
+        .filter(|&i| mesh.positions()[i].z > 1.6e-3)
+        .collect();
+    let bottom: Vec<usize> = (0..mesh.num_vertices())
+        .filter(|&i| mesh.positions()[i].z < -1.6e-3)
+        .collect();
     let h = 0.02;
     let (mut iters, mut age) = (0.0, 0.0);
     for s in 0..steps {
@@ -208,7 +237,8 @@ fn lens_iterations(kind: PreconditionerKind, steps: usize) -> (f64, f64) {
         let rot = Rotation3::from_axis_angle(&Vec3::z_axis(), t * 60f64.to_radians());
         for &i in &top {
             let p = mesh.positions()[i];
-            body.drive_node(i, rot * v3(p.x, p.y, p.z - t * 1.8e-3)).unwrap();
+            body.drive_node(i, rot * v3(p.x, p.y, p.z - t * 1.8e-3))
+                .unwrap();
         }
         body.fix_nodes(&bottom).unwrap();
         let r = body.step(h).unwrap();
@@ -234,11 +264,24 @@ fn lens_cg_iterations_per_preconditioner() {
         println!("lens {kind:?}: mean CG iterations {it:.2}, mean factor age {age:.2}");
         table.push((kind, it));
     }
-    let get = |k: PreconditionerKind| table.iter().find(|e| e.0 == k).map(|e| e.1).unwrap_or(f64::NAN);
+    let get = |k: PreconditionerKind| {
+        table
+            .iter()
+            .find(|e| e.0 == k)
+            .map(|e| e.1)
+            .unwrap_or(f64::NAN)
+    };
     assert!(get(PreconditionerKind::Periodic { every: 1 }) <= 2.0);
-    assert!(get(PreconditionerKind::Async) <= 8.5, "async {}", get(PreconditionerKind::Async));
+    assert!(
+        get(PreconditionerKind::Async) <= 8.5,
+        "async {}",
+        get(PreconditionerKind::Async)
+    );
     assert!(get(PreconditionerKind::Periodic { every: 4 }) < get(PreconditionerKind::Jacobi));
-    assert!(get(PreconditionerKind::Periodic { every: 4 }) <= get(PreconditionerKind::Periodic { every: 16 }));
+    assert!(
+        get(PreconditionerKind::Periodic { every: 4 })
+            <= get(PreconditionerKind::Periodic { every: 16 })
+    );
 }
 
 /// A graded beam with a 10⁴ stiffness contrast and element size ratio ≥ 20.
@@ -262,9 +305,16 @@ fn hard_case_stays_stable() {
     let size_ratio = mesh.max_edge_length() / mesh.min_edge_length();
     assert!(size_ratio >= 20.0, "size ratio {size_ratio}");
     let young: Vec<f64> = (0..mesh.num_tets())
-        .map(|t| if mesh.tet_centroid(t).x < 0.1 { 1e3 } else { 1e7 })
+        .map(|t| {
+            if mesh.tet_centroid(t).x < 0.1 {
+                1e3
+            } else {
+                1e7
+            }
+        })
         .collect();
-    let material = Material::new(1000.0, 1e3, 0.4).with_stiffness(StiffnessField::PerElement(young));
+    let material =
+        Material::new(1000.0, 1e3, 0.4).with_stiffness(StiffnessField::PerElement(young));
     let g = 9.81;
     let settings = BodySettings {
         gravity: Some(v3(0.0, 0.0, -g)),
@@ -287,13 +337,20 @@ fn hard_case_stays_stable() {
     for s in 0..1000 {
         let r = body.step(0.02).unwrap();
         assert!(r.cg.converged, "step {s}: {:?}", r.cg);
-        assert!(body.positions().iter().all(|p| p.iter().all(|c| c.is_finite())));
+        assert!(
+            body.positions()
+                .iter()
+                .all(|p| p.iter().all(|c| c.is_finite()))
+        );
         let e = body.kinetic_energy() + body.elastic_energy() + potential(&body);
         max_energy = max_energy.max(e);
         assert!(e.is_finite());
     }
     // Starting at rest with zero energy, a dissipative implicit step must not gain energy.
-    assert!(max_energy <= 1e-6 * scale, "energy grew to {max_energy:e} (scale {scale:e})");
+    assert!(
+        max_energy <= 1e-6 * scale,
+        "energy grew to {max_energy:e} (scale {scale:e})"
+    );
 }
 
 #[test]
@@ -314,13 +371,20 @@ fn ldlt_solves_and_node_columns_match_dense() {
     let st = body.preconditioner().factor_state().unwrap();
     let f = &st.factor;
     let n = a.n();
-    let b: Vec<Vec3> = (0..n).map(|i| v3(i as f64, 1.0, -(i as f64).sin())).collect();
+    let b: Vec<Vec3> = (0..n)
+        .map(|i| v3(i as f64, 1.0, -(i as f64).sin()))
+        .collect();
     let mut x = vec![Vec3::zeros(); n];
     let mut tmp = vec![Vec3::zeros(); n];
     f.solve(&b, &mut x, &mut tmp);
     let mut ax = vec![Vec3::zeros(); n];
     a.mul_vec(&x, &mut ax);
-    let res: f64 = ax.iter().zip(&b).map(|(p, q)| (p - q).norm_squared()).sum::<f64>().sqrt();
+    let res: f64 = ax
+        .iter()
+        .zip(&b)
+        .map(|(p, q)| (p - q).norm_squared())
+        .sum::<f64>()
+        .sqrt();
     let bn: f64 = b.iter().map(|v| v.norm_squared()).sum::<f64>().sqrt();
     assert!(res <= 1e-10 * bn, "residual {res:e}");
     // Node forward solve equals the dense forward solve of the unit columns.
@@ -329,13 +393,19 @@ fn ldlt_solves_and_node_columns_match_dense() {
     for node in [0, 7, n / 2, n - 1] {
         let (mut path, mut blocks) = (Vec::new(), Vec::new());
         f.node_forward_solve(node, &mut work, &mut path, &mut blocks);
-        assert!(work.iter().all(|m| *m == Mat3::zeros()), "scratch left dirty");
+        assert!(
+            work.iter().all(|m| *m == Mat3::zeros()),
+            "scratch left dirty"
+        );
         for c in 0..3 {
             let mut y = vec![Vec3::zeros(); n];
             y[sym.iperm[node]][c] = 1.0;
             f.forward(&mut y);
             for (k, yk) in y.iter().enumerate() {
-                let got = path.iter().position(|&p| p == k).map(|i| blocks[i].column(c).into_owned());
+                let got = path
+                    .iter()
+                    .position(|&p| p == k)
+                    .map(|i| blocks[i].column(c).into_owned());
                 match got {
                     Some(z) => assert!((z - yk).norm() <= 1e-12 * (1.0 + yk.norm())),
                     None => assert!(yk.norm() == 0.0, "nonzero off the etree path at {k}"),
@@ -356,7 +426,10 @@ fn ldlt_rejects_indefinite_matrix() {
     let sym = Arc::new(LdltSymbolic::new(&pattern).unwrap());
     let mut f = sym.alloc_factor();
     let err = sym.factorize(&a, &mut f, &mut Vec::new()).unwrap_err();
-    assert!(matches!(err, SoftTissueError::NotPositiveDefinite { node: 3, .. }), "{err}");
+    assert!(
+        matches!(err, SoftTissueError::NotPositiveDefinite { node: 3, .. }),
+        "{err}"
+    );
 }
 
 #[test]
@@ -369,16 +442,23 @@ fn async_worker_stops_when_body_dropped() {
     let flag = body.preconditioner().worker().unwrap().alive_flag();
     assert!(flag.load(Ordering::SeqCst));
     drop(body);
-    assert!(!flag.load(Ordering::SeqCst), "worker thread still running after drop");
+    assert!(
+        !flag.load(Ordering::SeqCst),
+        "worker thread still running after drop"
+    );
 }
 
 #[test]
 fn async_factor_is_refreshed_and_used() {
     let mesh = generate::ellipsoid(LENS_RADII, 8).unwrap();
-    let mut body = DeformableBody::new(mesh, lens_material(), BodySettings {
-        gravity: Some(v3(0.0, -9.81, 0.0)),
-        ..Default::default()
-    })
+    let mut body = DeformableBody::new(
+        mesh,
+        lens_material(),
+        BodySettings {
+            gravity: Some(v3(0.0, -9.81, 0.0)),
+            ..Default::default()
+        },
+    )
     .unwrap();
     body.fix_where(|p| p.z < -1.5e-3);
     for _ in 0..200 {
@@ -405,23 +485,40 @@ fn polar_rotation_is_proper_for_flat_and_inverted() {
     let nan = Mat3::from_element(f64::NAN);
     assert_eq!(polar_rotation(&nan), Mat3::identity());
     // An inverted element still gets finite forces.
-    let x = [v3(0., 0., 0.), v3(1., 0., 0.), v3(0., 1., 0.), v3(0., 0., 1.)];
+    let x = [
+        v3(0., 0., 0.),
+        v3(1., 0., 0.),
+        v3(0., 1., 0.),
+        v3(0., 0., 1.),
+    ];
     let e = Element::new([0, 1, 2, 3], x, 1.0, 1.0);
     let xi = [x[0], x[1], x[2], v3(0.0, 0.0, -0.5)];
     let r = e.rotation(RotationMethod::Polar, &xi);
-    assert!(e.forces(&r, &xi).iter().all(|f| f.iter().all(|c| c.is_finite())));
+    assert!(
+        e.forces(&r, &xi)
+            .iter()
+            .all(|f| f.iter().all(|c| c.is_finite()))
+    );
 }
 
 #[test]
 fn generators_reach_paper_sizes() {
     let lens = generate::ellipsoid(LENS_RADII, 12).unwrap();
-    println!("lens: {} vertices, {} tets", lens.num_vertices(), lens.num_tets());
+    println!(
+        "lens: {} vertices, {} tets",
+        lens.num_vertices(),
+        lens.num_tets()
+    );
     assert!((1000..=1300).contains(&lens.num_vertices()));
     assert!((4300..=5500).contains(&lens.num_tets()));
     let (lo, hi) = lens.bounds();
     assert!(((hi - lo).x - 9.5e-3).abs() < 1e-6 && ((hi - lo).z - 4.5e-3).abs() < 1e-6);
     let eye = generate::eye_shell(&EyeShell::default()).unwrap();
-    println!("eye: {} vertices, {} tets", eye.num_vertices(), eye.num_tets());
+    println!(
+        "eye: {} vertices, {} tets",
+        eye.num_vertices(),
+        eye.num_tets()
+    );
     assert!((1100..=1400).contains(&eye.num_vertices()));
     assert!((3300..=4100).contains(&eye.num_tets()));
     // Closed lens surface: every edge shared by exactly two triangles.
@@ -437,9 +534,37 @@ fn generators_reach_paper_sizes() {
     };
     assert!(closed(&lens.surface()));
     // The eye without an incision is closed too; the incision opens it.
-    let full = generate::eye_shell(&EyeShell { incision: None, ..Default::default() }).unwrap();
+    let full = generate::eye_shell(&EyeShell {
+        incision: None,
+        ..Default::default()
+    })
+    .unwrap();
     assert!(closed(&full.surface()));
-    assert!(!closed(&eye.surface()));
+    assert!(closed(&eye.surface()));
+    // Without an incision the boundary is two spheres (outer and inner wall); the
+    // slit through the wall joins them into one surface.
+    let components = |s: &Surface| {
+        let mut parent: Vec<usize> = (0..s.vertices.len()).collect();
+        fn find(p: &mut Vec<usize>, x: usize) -> usize {
+            let mut r = x;
+            while p[r] != r {
+                r = p[r];
+            }
+            p[x] = r;
+            r
+        }
+        for t in &s.triangles {
+            for k in 1..3 {
+                let (a, b) = (find(&mut parent, t[0]), find(&mut parent, t[k]));
+                parent[a] = b;
+            }
+        }
+        (0..s.vertices.len())
+            .filter(|&v| find(&mut parent, v) == v)
+            .count()
+    };
+    assert_eq!(components(&full.surface()), 2);
+    assert_eq!(components(&eye.surface()), 1);
     assert!(eye.num_tets() < full.num_tets());
     // Outward surface: the signed volume from the surface equals the mesh volume.
     for m in [&lens, &full] {
@@ -451,20 +576,43 @@ fn generators_reach_paper_sizes() {
                 a.dot(&b.cross(&c)) / 6.0
             })
             .sum();
-        assert!((vol - m.volume()).abs() < 1e-9 * m.volume().abs(), "{vol} vs {}", m.volume());
+        assert!(
+            (vol - m.volume()).abs() < 1e-9 * m.volume().abs(),
+            "{vol} vs {}",
+            m.volume()
+        );
     }
     let shell_r: Vec<f64> = full.positions().iter().map(|p| p.norm()).collect();
-    assert!(shell_r.iter().all(|&r| r > 11e-3 - 1e-9 && r < 12e-3 + 1e-9));
+    assert!(
+        shell_r
+            .iter()
+            .all(|&r| r > 11e-3 - 1e-9 && r < 12e-3 + 1e-9)
+    );
 }
 
 #[test]
 fn mesh_validation_errors() {
-    let p = vec![v3(0., 0., 0.), v3(1., 0., 0.), v3(0., 1., 0.), v3(0., 0., 1.)];
-    assert!(matches!(TetMesh::new(vec![], vec![[0, 1, 2, 3]]), Err(SoftTissueError::EmptyMesh(_))));
-    assert!(matches!(TetMesh::new(p.clone(), vec![]), Err(SoftTissueError::EmptyMesh(_))));
+    let p = vec![
+        v3(0., 0., 0.),
+        v3(1., 0., 0.),
+        v3(0., 1., 0.),
+        v3(0., 0., 1.),
+    ];
+    assert!(matches!(
+        TetMesh::new(vec![], vec![[0, 1, 2, 3]]),
+        Err(SoftTissueError::EmptyMesh(_))
+    ));
+    assert!(matches!(
+        TetMesh::new(p.clone(), vec![]),
+        Err(SoftTissueError::EmptyMesh(_))
+    ));
     assert!(matches!(
         TetMesh::new(p.clone(), vec![[0, 1, 2, 7]]),
-        Err(SoftTissueError::IndexOutOfRange { tet: 0, index: 7, len: 4 })
+        Err(SoftTissueError::IndexOutOfRange {
+            tet: 0,
+            index: 7,
+            len: 4
+        })
     ));
     assert!(matches!(
         TetMesh::new(p.clone(), vec![[0, 1, 1, 3]]),
@@ -472,7 +620,10 @@ fn mesh_validation_errors() {
     ));
     let mut flat = p.clone();
     flat[3] = v3(0.5, 0.5, 0.0);
-    assert!(matches!(TetMesh::new(flat, vec![[0, 1, 2, 3]]), Err(SoftTissueError::DegenerateTet { tet: 0, .. })));
+    assert!(matches!(
+        TetMesh::new(flat, vec![[0, 1, 2, 3]]),
+        Err(SoftTissueError::DegenerateTet { tet: 0, .. })
+    ));
     assert!(matches!(
         TetMesh::new(p.clone(), vec![[0, 2, 1, 3]]),
         Err(SoftTissueError::InvertedTet { tet: 0, .. })
@@ -480,16 +631,25 @@ fn mesh_validation_errors() {
     let fixed = TetMesh::with_options(
         p.clone(),
         vec![[0, 2, 1, 3]],
-        ValidateOptions { reorient: true, ..Default::default() },
+        ValidateOptions {
+            reorient: true,
+            ..Default::default()
+        },
     )
     .unwrap();
     assert!(fixed.tet_volume(0) > 0.0);
     let mut nan = p.clone();
     nan[2].y = f64::NAN;
-    assert!(matches!(TetMesh::new(nan, vec![[0, 1, 2, 3]]), Err(SoftTissueError::NonFiniteVertex { vertex: 2, .. })));
+    assert!(matches!(
+        TetMesh::new(nan, vec![[0, 1, 2, 3]]),
+        Err(SoftTissueError::NonFiniteVertex { vertex: 2, .. })
+    ));
     let mut extra = p.clone();
     extra.push(v3(5.0, 5.0, 5.0));
-    assert!(matches!(TetMesh::new(extra, vec![[0, 1, 2, 3]]), Err(SoftTissueError::UnusedVertex { vertex: 4 })));
+    assert!(matches!(
+        TetMesh::new(extra, vec![[0, 1, 2, 3]]),
+        Err(SoftTissueError::UnusedVertex { vertex: 4 })
+    ));
 }
 
 #[test]
@@ -503,7 +663,8 @@ fn parameter_errors() {
         Material::new(1000.0, 1e4, -1.0),
         Material::new(1000.0, 1e4, 0.3).with_damping(-1.0, 0.0),
         Material::new(1000.0, 1e4, 0.3).with_stiffness(StiffnessField::PerElement(vec![1.0; 3])),
-        Material::new(1000.0, 1e4, 0.3).with_stiffness(StiffnessField::PerElement(vec![-1.0; mesh.num_tets()])),
+        Material::new(1000.0, 1e4, 0.3)
+            .with_stiffness(StiffnessField::PerElement(vec![-1.0; mesh.num_tets()])),
         Material::new(1000.0, 1e4, 0.3).with_stiffness(StiffnessField::Radial {
             center: Vec3::zeros(),
             radii: v3(1.0, 0.0, 1.0),
@@ -520,44 +681,78 @@ fn parameter_errors() {
     let mut s = BodySettings::default();
     s.cg.tolerance = 0.0;
     assert!(DeformableBody::new(mesh.clone(), ok.clone(), s).is_err());
-    let s = BodySettings { preconditioner: PreconditionerKind::Periodic { every: 0 }, ..Default::default() };
+    let s = BodySettings {
+        preconditioner: PreconditionerKind::Periodic { every: 0 },
+        ..Default::default()
+    };
     assert!(DeformableBody::new(mesh.clone(), ok.clone(), s).is_err());
-    let s = BodySettings { gravity: Some(v3(0.0, f64::NAN, 0.0)), ..Default::default() };
+    let s = BodySettings {
+        gravity: Some(v3(0.0, f64::NAN, 0.0)),
+        ..Default::default()
+    };
     assert!(DeformableBody::new(mesh.clone(), ok.clone(), s).is_err());
     let mut body = DeformableBody::new(mesh.clone(), ok, BodySettings::default()).unwrap();
     assert!(body.step(0.0).is_err());
     assert!(body.step(f64::NAN).is_err());
     assert!(body.step(-0.01).is_err());
-    assert!(matches!(body.fix_nodes(&[10_000]), Err(SoftTissueError::NodeOutOfRange { .. })));
+    assert!(matches!(
+        body.fix_nodes(&[10_000]),
+        Err(SoftTissueError::NodeOutOfRange { .. })
+    ));
     assert!(body.drive_node(0, v3(f64::INFINITY, 0.0, 0.0)).is_err());
     assert!(body.set_external_force(0, v3(f64::NAN, 0.0, 0.0)).is_err());
     let n = body.num_nodes();
     let mut x = body.positions().to_vec();
     x[1].x = f64::NAN;
-    assert!(matches!(body.set_state(&x, &vec![Vec3::zeros(); n]), Err(SoftTissueError::NonFinite(_))));
+    assert!(matches!(
+        body.set_state(&x, &vec![Vec3::zeros(); n]),
+        Err(SoftTissueError::NonFinite(_))
+    ));
     assert!(body.set_state(&x[..2], &vec![Vec3::zeros(); n]).is_err());
     // Generators.
     assert!(generate::box_mesh(Vec3::zeros(), v3(1.0, 1.0, 1.0), [0, 1, 1]).is_err());
     assert!(generate::box_mesh(Vec3::zeros(), v3(-1.0, 1.0, 1.0), [1, 1, 1]).is_err());
     assert!(generate::ellipsoid([1.0, f64::NAN, 1.0], 4).is_err());
-    assert!(generate::eye_shell(&EyeShell { thickness: 20e-3, ..Default::default() }).is_err());
-    assert!(generate::eye_shell(&EyeShell {
-        incision: Some(Incision { length: -1.0, ..Default::default() }),
-        ..Default::default()
-    })
-    .is_err());
+    assert!(
+        generate::eye_shell(&EyeShell {
+            thickness: 20e-3,
+            ..Default::default()
+        })
+        .is_err()
+    );
+    assert!(
+        generate::eye_shell(&EyeShell {
+            incision: Some(Incision {
+                length: -1.0,
+                ..Default::default()
+            }),
+            ..Default::default()
+        })
+        .is_err()
+    );
 }
 
 #[test]
 fn body_with_nan_state_is_rejected_not_propagated() {
     let mesh = beam([3, 1, 1], 0.1, 0.02);
-    let mut body = DeformableBody::new(mesh, Material::new(1000.0, 1e4, 0.3), BodySettings::default()).unwrap();
+    let mut body = DeformableBody::new(
+        mesh,
+        Material::new(1000.0, 1e4, 0.3),
+        BodySettings::default(),
+    )
+    .unwrap();
     body.step(0.01).unwrap();
     // Make the right-hand side non-finite through an external force that overflows.
     body.set_external_force(0, v3(f64::MAX, 0.0, 0.0)).unwrap();
     body.set_external_force(1, v3(f64::MAX, 0.0, 0.0)).unwrap();
     let r = body.step(0.01);
-    assert!(r.is_err() || body.positions().iter().all(|p| p.iter().all(|c| c.is_finite())));
+    assert!(
+        r.is_err()
+            || body
+                .positions()
+                .iter()
+                .all(|p| p.iter().all(|c| c.is_finite()))
+    );
 }
 
 #[test]
@@ -576,7 +771,12 @@ fn msh_roundtrip_ascii_and_binary() {
     std::fs::create_dir_all(&dir).unwrap();
     let path = dir.join("m.msh");
     std::fs::write(&path, io::write_msh(&mesh, true)).unwrap();
-    assert_eq!(io::load_msh(&path, ValidateOptions::default()).unwrap().num_tets(), mesh.num_tets());
+    assert_eq!(
+        io::load_msh(&path, ValidateOptions::default())
+            .unwrap()
+            .num_tets(),
+        mesh.num_tets()
+    );
     assert!(matches!(
         io::load_msh(dir.join("missing.msh"), ValidateOptions::default()),
         Err(SoftTissueError::Io { .. })
@@ -585,7 +785,11 @@ fn msh_roundtrip_ascii_and_binary() {
 
 #[test]
 fn msh_malformed_inputs_are_errors() {
-    let good = String::from_utf8(io::write_msh(&generate::box_mesh(Vec3::zeros(), v3(1., 1., 1.), [1, 1, 1]).unwrap(), false)).unwrap();
+    let good = String::from_utf8(io::write_msh(
+        &generate::box_mesh(Vec3::zeros(), v3(1., 1., 1.), [1, 1, 1]).unwrap(),
+        false,
+    ))
+    .unwrap();
     let cases = [
         String::new(),
         "garbage".to_string(),
@@ -597,9 +801,15 @@ fn msh_malformed_inputs_are_errors() {
     ];
     for (i, c) in cases.iter().enumerate() {
         let r = io::parse_msh(c.as_bytes(), ValidateOptions::default());
-        assert!(matches!(r, Err(SoftTissueError::Parse { .. })), "case {i}: {r:?}");
+        assert!(
+            matches!(r, Err(SoftTissueError::Parse { .. })),
+            "case {i}: {r:?}"
+        );
     }
-    let binary = io::write_msh(&generate::box_mesh(Vec3::zeros(), v3(1., 1., 1.), [1, 1, 1]).unwrap(), true);
+    let binary = io::write_msh(
+        &generate::box_mesh(Vec3::zeros(), v3(1., 1., 1.), [1, 1, 1]).unwrap(),
+        true,
+    );
     assert!(io::parse_msh(&binary[..binary.len() - 40], ValidateOptions::default()).is_err());
 }
 
@@ -607,12 +817,25 @@ fn msh_malformed_inputs_are_errors() {
 fn tetgen_loader() {
     let node1 = "# unit tet\n5 3 0 0\n1 0 0 0\n2 1 0 0\n3 0 1 0\n4 0 0 1\n5 1 1 1\n";
     let ele1 = "2 4 0\n1 1 2 3 4\n2 2 3 4 5  # second\n";
-    let m = io::parse_tetgen(node1, ele1, ValidateOptions { reorient: true, ..Default::default() }).unwrap();
+    let m = io::parse_tetgen(
+        node1,
+        ele1,
+        ValidateOptions {
+            reorient: true,
+            ..Default::default()
+        },
+    )
+    .unwrap();
     assert_eq!((m.num_vertices(), m.num_tets()), (5, 2));
     assert!(m.tet_volume(1) > 0.0);
     let node0 = "4 3 0 0\n0 0 0 0\n1 1 0 0\n2 0 1 0\n3 0 0 1\n";
     let ele0 = "1 4 0\n0 0 1 2 3\n";
-    assert_eq!(io::parse_tetgen(node0, ele0, ValidateOptions::default()).unwrap().num_tets(), 1);
+    assert_eq!(
+        io::parse_tetgen(node0, ele0, ValidateOptions::default())
+            .unwrap()
+            .num_tets(),
+        1
+    );
     let bad = [
         ("", ele0),
         ("4 2 0 0\n", ele0),
@@ -624,7 +847,10 @@ fn tetgen_loader() {
         (node0, "1 4 0\n0 0 1 2 9\n"),
     ];
     for (i, (n, e)) in bad.iter().enumerate() {
-        assert!(io::parse_tetgen(n, e, ValidateOptions::default()).is_err(), "case {i}");
+        assert!(
+            io::parse_tetgen(n, e, ValidateOptions::default()).is_err(),
+            "case {i}"
+        );
     }
 }
 
@@ -634,7 +860,10 @@ fn radial_field_makes_core_stiffer() {
     let young = lens_material().element_young(&mesh).unwrap();
     let (mut core, mut rim) = (f64::NAN, f64::NAN);
     for t in 0..mesh.num_tets() {
-        let rho = mesh.tet_centroid(t).component_div(&Vec3::from(LENS_RADII)).norm();
+        let rho = mesh
+            .tet_centroid(t)
+            .component_div(&Vec3::from(LENS_RADII))
+            .norm();
         if rho < 0.3 {
             core = young[t];
         }
@@ -664,13 +893,22 @@ fn material_change_at_runtime_changes_stiffness() {
         ..Default::default()
     };
     let sag = |young: f64| {
-        let mut b = DeformableBody::new(mesh.clone(), Material::new(1000.0, 1e5, 0.3).with_damping(1.0, 0.0), settings).unwrap();
+        let mut b = DeformableBody::new(
+            mesh.clone(),
+            Material::new(1000.0, 1e5, 0.3).with_damping(1.0, 0.0),
+            settings,
+        )
+        .unwrap();
         b.fix_where(|p| p.x < 1e-9);
-        b.set_material(Material::new(1000.0, young, 0.3).with_damping(1.0, 0.0)).unwrap();
+        b.set_material(Material::new(1000.0, young, 0.3).with_damping(1.0, 0.0))
+            .unwrap();
         for _ in 0..20 {
             b.step(5.0).unwrap();
         }
-        b.positions().iter().map(|p| -p.z).fold(f64::NEG_INFINITY, f64::max)
+        b.positions()
+            .iter()
+            .map(|p| -p.z)
+            .fold(f64::NEG_INFINITY, f64::max)
     };
     let (soft, stiff) = (sag(1e5), sag(1e6));
     assert!(soft > 5.0 * stiff, "soft {soft}, stiff {stiff}");

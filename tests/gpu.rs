@@ -14,6 +14,7 @@ use bevy::render::settings::{Backends, RenderCreation, WgpuSettings};
 use bevy::window::ExitCondition;
 use bevy_soft_tissue::contact::{ContactOther, ContactSide};
 use bevy_soft_tissue::gpu::GpuCompliance;
+use bevy_soft_tissue::math::Vec3 as DVec3;
 use bevy_soft_tissue::mesh::generate::LENS_RADII;
 use bevy_soft_tissue::plugin::GpuMode;
 use bevy_soft_tissue::prelude::*;
@@ -28,12 +29,14 @@ fn vulkan_available() -> bool {
 
 /// A headless app with a render device, or `None` (with the reason printed) when
 /// this machine has no Vulkan device and we are not in CI.
-fn render_app() -> Option<App> {
+fn render_app(extra: impl FnOnce(&mut App)) -> Option<App> {
     if !vulkan_available() {
         if std::env::var("CI").is_ok_and(|v| v == "true") {
             panic!("CI=true but no Vulkan adapter: is mesa-vulkan-drivers (lavapipe) installed?");
         }
-        eprintln!("skipping GPU test: no Vulkan adapter on this machine (install mesa-vulkan-drivers)");
+        eprintln!(
+            "skipping GPU test: no Vulkan adapter on this machine (install mesa-vulkan-drivers)"
+        );
         return None;
     }
     let mut app = App::new();
@@ -58,6 +61,7 @@ fn render_app() -> Option<App> {
             ..Default::default()
         },
     ));
+    extra(&mut app);
     app.finish();
     app.cleanup();
     Some(app)
@@ -66,12 +70,20 @@ fn render_app() -> Option<App> {
 fn lens_contacts(body: &DeformableBody, n: usize) -> Vec<Contact> {
     let mut verts: Vec<usize> = body.surface().vertices.clone();
     let pole = v3(0.0, 0.0, LENS_RADII[2]);
-    verts.sort_by(|&a, &b| (body.positions()[a] - pole).norm().total_cmp(&(body.positions()[b] - pole).norm()));
+    verts.sort_by(|&a, &b| {
+        (body.positions()[a] - pole)
+            .norm()
+            .total_cmp(&(body.positions()[b] - pole).norm())
+    });
     verts
         .iter()
         .take(n)
         .map(|&v| Contact {
-            a: ContactSide { body: 0, nodes: [v as u32, 0, 0], weights: [1.0, 0.0, 0.0] },
+            a: ContactSide {
+                body: 0,
+                nodes: [v as u32, 0, 0],
+                weights: [1.0, 0.0, 0.0],
+            },
             other: ContactOther::Tool(0),
             normal: v3(0.0, 0.3, -1.0).normalize(),
             tangents: [v3(1.0, 0.0, 0.0), v3(0.0, 1.0, 0.3).normalize()],
@@ -79,24 +91,30 @@ fn lens_contacts(body: &DeformableBody, n: usize) -> Vec<Contact> {
             slip: [0.0, 0.0],
             mu: 0.3,
             point: body.positions()[v],
-            force: Vec3::zeros(),
+            force: DVec3::zeros(),
         })
         .collect()
 }
 
 #[test]
 fn gpu_w_matches_cpu_w_on_lens_with_90_friction_contacts() {
-    let Some(app) = render_app() else { return };
+    let Some(app) = render_app(|_| {}) else {
+        return;
+    };
     let device = app.world().resource::<RenderDevice>().clone();
     let queue = app.world().resource::<RenderQueue>().clone();
     // Paper-size lens, turned so the factor's rotation warp is not the identity.
     let mesh = generate::ellipsoid(LENS_RADII, 12).unwrap();
-    let settings = BodySettings { preconditioner: PreconditionerKind::Periodic { every: 1000 }, ..Default::default() };
-    let mut body = DeformableBody::new(mesh.clone(), Material::new(1000.0, 5e3, 0.45), settings).unwrap();
+    let settings = BodySettings {
+        preconditioner: PreconditionerKind::Periodic { every: 1000 },
+        ..Default::default()
+    };
+    let mut body =
+        DeformableBody::new(mesh.clone(), Material::new(1000.0, 5e3, 0.45), settings).unwrap();
     body.step(0.02).unwrap();
     let rot = nalgebra::Rotation3::from_euler_angles(0.3, -0.2, 0.5);
-    let x: Vec<Vec3> = mesh.positions().iter().map(|p| rot * p).collect();
-    body.set_state(&x, &vec![Vec3::zeros(); x.len()]).unwrap();
+    let x: Vec<DVec3> = mesh.positions().iter().map(|p| rot * p).collect();
+    body.set_state(&x, &vec![DVec3::zeros(); x.len()]).unwrap();
     body.step(0.02).unwrap();
     assert!(body.preconditioner().factor_state().unwrap().warped);
     let contacts = lens_contacts(&body, 90);
@@ -110,30 +128,48 @@ fn gpu_w_matches_cpu_w_on_lens_with_90_friction_contacts() {
     let mut gpu = GpuCompliance::new(device, queue, GpuMode::On);
     let mut on_gpu = ContactSolver::new(ContactSettings::default()).unwrap();
     on_gpu.set_contacts(&contacts, &[&body], 0.02).unwrap();
-    on_gpu.build_compliance_with(&[&body], Some(&mut gpu)).unwrap();
+    on_gpu
+        .build_compliance_with(&[&body], Some(&mut gpu))
+        .unwrap();
     let (wg, m2) = on_gpu.delassus();
     assert_eq!(m, m2);
     assert!(gpu.dispatches >= 3 && gpu.built == 1, "{gpu:?}");
     let scale = wc.iter().fold(0.0f64, |a, v| a.max(v.abs()));
-    let diff = wc.iter().zip(wg).fold(0.0f64, |a, (p, q)| a.max((p - q).abs()));
+    let diff = wc
+        .iter()
+        .zip(wg)
+        .fold(0.0f64, |a, (p, q)| a.max((p - q).abs()));
     println!("GPU vs CPU W: max |ΔW| / max |W| = {:.2e}", diff / scale);
-    assert!(diff <= 1e-4 * scale, "relative difference {:e}", diff / scale);
+    assert!(
+        diff <= 1e-4 * scale,
+        "relative difference {:e}",
+        diff / scale
+    );
     // A second build with the same factor reuses the uploaded factor.
-    on_gpu.build_compliance_with(&[&body], Some(&mut gpu)).unwrap();
+    on_gpu
+        .build_compliance_with(&[&body], Some(&mut gpu))
+        .unwrap();
     assert_eq!(gpu.uploads, 1);
 }
 
 #[test]
 fn cataract_scene_runs_with_the_gpu_path_on() {
-    let Some(mut app) = render_app() else { return };
     let h = 1.0 / 60.0;
-    app.add_plugins(SoftTissuePlugin::default().with_config(SoftTissueConfig {
-        timestep: h,
-        gpu: GpuMode::On,
-        ..Default::default()
-    }))
-    .add_plugins(CataractScenePlugin { params: CataractParams::coarse() })
-    .insert_resource(bevy::time::TimeUpdateStrategy::ManualDuration(Duration::from_secs_f64(h)));
+    let Some(mut app) = render_app(|app| {
+        app.add_plugins(SoftTissuePlugin::default().with_config(SoftTissueConfig {
+            timestep: h,
+            gpu: GpuMode::On,
+            ..Default::default()
+        }))
+        .add_plugins(CataractScenePlugin {
+            params: CataractParams::coarse(),
+        })
+        .insert_resource(bevy::time::TimeUpdateStrategy::ManualDuration(
+            Duration::from_secs_f64(h),
+        ));
+    }) else {
+        return;
+    };
     let mut guard = 0;
     while app.world().resource::<SoftTissueDiagnostics>().steps < 150 {
         app.update();
@@ -144,7 +180,11 @@ fn cataract_scene_runs_with_the_gpu_path_on() {
     assert_eq!(d.errors, 0, "{d:?}");
     assert!(d.gpu_dispatches > 0, "the GPU path never ran: {d:?}");
     let world = app.world_mut();
-    let tools: Vec<RigidTool> = world.query::<&Tool>().iter(world).map(|t| t.0.clone()).collect();
+    let tools: Vec<RigidTool> = world
+        .query::<&Tool>()
+        .iter(world)
+        .map(|t| t.0.clone())
+        .collect();
     for b in world.query::<&SoftBody>().iter(world) {
         let tol = 0.01 * b.mesh().min_edge_length();
         for &v in &b.surface().vertices {

@@ -9,7 +9,9 @@ use bevy::time::TimeUpdateStrategy;
 use bevy_soft_tissue::contact::ToolShape;
 use bevy_soft_tissue::material::Material;
 use bevy_soft_tissue::mesh::generate;
-use bevy_soft_tissue::plugin::{SoftBody, SoftTissueConfig, SoftTissueDiagnostics, Tool, ToolReaction};
+use bevy_soft_tissue::plugin::{
+    SoftBody, SoftTissueConfig, SoftTissueDiagnostics, Tool, ToolReaction,
+};
 use bevy_soft_tissue::prelude::{BodyContacts, v3};
 use bevy_soft_tissue::{SoftTissuePlugin, SoftTissueSystems};
 
@@ -17,8 +19,13 @@ const H: f64 = 0.01;
 
 fn app(config: SoftTissueConfig) -> App {
     let mut app = App::new();
-    app.add_plugins((MinimalPlugins, SoftTissuePlugin::default().with_config(config)))
-        .insert_resource(TimeUpdateStrategy::ManualDuration(Duration::from_secs_f64(H)));
+    app.add_plugins((
+        MinimalPlugins,
+        SoftTissuePlugin::default().with_config(config),
+    ))
+    .insert_resource(TimeUpdateStrategy::ManualDuration(Duration::from_secs_f64(
+        H,
+    )));
     app
 }
 
@@ -33,7 +40,12 @@ fn steps(app: &mut App, n: u64) {
 }
 
 fn cube(size: f64, cells: usize, z0: f64) -> SoftBody {
-    let mesh = generate::box_mesh(v3(-size, -size, z0), v3(size, size, z0 + 2.0 * size), [cells; 3]).unwrap();
+    let mesh = generate::box_mesh(
+        v3(-size, -size, z0),
+        v3(size, size, z0 + 2.0 * size),
+        [cells; 3],
+    )
+    .unwrap();
     SoftBody::new(mesh, Material::new(1000.0, 3e4, 0.3).with_damping(2.0, 0.0)).unwrap()
 }
 
@@ -48,14 +60,24 @@ fn body_falls_onto_fixed_tool_and_stays_above_it() {
     let tool = app
         .world_mut()
         .spawn((
-            Tool::new(ToolShape::Box { half_extents: v3(0.05, 0.05, 0.005) }, 0.3).unwrap(),
+            Tool::new(
+                ToolShape::Box {
+                    half_extents: v3(0.05, 0.05, 0.005),
+                },
+                0.3,
+            )
+            .unwrap(),
             Transform::from_xyz(0.0, 0.0, -0.005),
         ))
         .id();
     steps(&mut app, 80);
     let w = app.world();
     let b = w.get::<SoftBody>(body).unwrap();
-    let min_z = b.positions().iter().map(|p| p.z).fold(f64::INFINITY, f64::min);
+    let min_z = b
+        .positions()
+        .iter()
+        .map(|p| p.z)
+        .fold(f64::INFINITY, f64::min);
     let tol = 0.01 * b.mesh().min_edge_length();
     assert!(min_z >= -tol, "body sank into the tool: {min_z}");
     assert!(min_z < 1e-3 - 1e-4, "body did not fall: {min_z}");
@@ -64,7 +86,11 @@ fn body_falls_onto_fixed_tool_and_stays_above_it() {
     let reaction = w.get::<ToolReaction>(tool).unwrap();
     // At rest the tool carries the body's weight.
     let weight = b.mass().iter().sum::<f64>() * 9.81;
-    assert!((reaction.force.z + weight).abs() < 0.1 * weight, "reaction {:?} vs weight {weight}", reaction.force);
+    assert!(
+        (reaction.force.z + weight).abs() < 0.1 * weight,
+        "reaction {:?} vs weight {weight}",
+        reaction.force
+    );
     let d = w.resource::<SoftTissueDiagnostics>();
     assert!(d.detect_runs > 0 && d.lcp_solves > 0);
     assert_eq!(d.errors, 0);
@@ -79,7 +105,10 @@ fn body_falls_onto_fixed_tool_and_stays_above_it() {
 
 #[test]
 fn despawning_a_body_stops_its_worker() {
-    let mut app = app(SoftTissueConfig { timestep: H, ..Default::default() });
+    let mut app = app(SoftTissueConfig {
+        timestep: H,
+        ..Default::default()
+    });
     let e = app.world_mut().spawn(cube(4e-3, 3, 0.0)).id();
     steps(&mut app, 3);
     let flag = app
@@ -93,7 +122,10 @@ fn despawning_a_body_stops_its_worker() {
     assert!(flag.load(Ordering::SeqCst));
     app.world_mut().despawn(e);
     steps(&mut app, 1);
-    assert!(!flag.load(Ordering::SeqCst), "worker still alive after despawn");
+    assert!(
+        !flag.load(Ordering::SeqCst),
+        "worker still alive after despawn"
+    );
     assert_eq!(app.world().resource::<SoftTissueDiagnostics>().errors, 0);
 }
 
@@ -105,12 +137,21 @@ fn changing_the_material_at_runtime() {
             gravity: Some(bevy::math::DVec3::new(0.0, 0.0, -9.81)),
             ..Default::default()
         });
-        let mesh = generate::box_mesh(v3(0.0, -2e-3, -2e-3), v3(0.02, 2e-3, 2e-3), [10, 2, 2]).unwrap();
+        let mesh =
+            generate::box_mesh(v3(0.0, -2e-3, -2e-3), v3(0.02, 2e-3, 2e-3), [10, 2, 2]).unwrap();
         let e = app
             .world_mut()
             .spawn((
-                SoftBody::new(mesh.clone(), Material::new(1000.0, 1e6, 0.3).with_damping(5.0, 0.0)).unwrap(),
-                bevy_soft_tissue::plugin::FixedNodes((0..mesh.num_vertices()).filter(|&i| mesh.positions()[i].x < 1e-9).collect()),
+                SoftBody::new(
+                    mesh.clone(),
+                    Material::new(1000.0, 1e6, 0.3).with_damping(5.0, 0.0),
+                )
+                .unwrap(),
+                bevy_soft_tissue::plugin::FixedNodes(
+                    (0..mesh.num_vertices())
+                        .filter(|&i| mesh.positions()[i].x < 1e-9)
+                        .collect(),
+                ),
             ))
             .id();
         steps(&mut app, 2);
@@ -134,13 +175,25 @@ fn changing_the_material_at_runtime() {
 #[test]
 fn absent_effects_cost_nothing() {
     // One body, no tool, no gravity, no damping coefficients.
-    let mut app = app(SoftTissueConfig { timestep: H, ..Default::default() });
+    let mut app = app(SoftTissueConfig {
+        timestep: H,
+        ..Default::default()
+    });
     let mesh = generate::box_mesh(v3(0.0, 0.0, 0.0), v3(0.01, 0.01, 0.01), [2, 2, 2]).unwrap();
-    app.world_mut().spawn(SoftBody::new(mesh, Material::new(1000.0, 1e4, 0.3)).unwrap());
+    app.world_mut()
+        .spawn(SoftBody::new(mesh, Material::new(1000.0, 1e4, 0.3)).unwrap());
     steps(&mut app, 10);
     let d = app.world().resource::<SoftTissueDiagnostics>().clone();
     assert_eq!(
-        (d.detect_runs, d.compliance_builds, d.lcp_solves, d.friction_rows, d.damping_bodies, d.gravity_bodies, d.gpu_dispatches),
+        (
+            d.detect_runs,
+            d.compliance_builds,
+            d.lcp_solves,
+            d.friction_rows,
+            d.damping_bodies,
+            d.gravity_bodies,
+            d.gpu_dispatches
+        ),
         (0, 0, 0, 0, 0, 0, 0),
         "{d:?}"
     );
@@ -152,7 +205,10 @@ fn absent_effects_cost_nothing() {
     steps(&mut app, 5);
     let d = app.world().resource::<SoftTissueDiagnostics>().clone();
     assert!(d.detect_runs > 0);
-    assert_eq!((d.compliance_builds, d.lcp_solves, d.friction_rows), (0, 0, 0));
+    assert_eq!(
+        (d.compliance_builds, d.lcp_solves, d.friction_rows),
+        (0, 0, 0)
+    );
     // Touching frictionless tool: contacts, no friction rows.
     let mut q = app.world_mut().query::<(&Tool, &mut Transform)>();
     for (_, mut t) in q.iter_mut(app.world_mut()) {
@@ -163,9 +219,15 @@ fn absent_effects_cost_nothing() {
     assert!(d.compliance_builds > 0 && d.lcp_solves > 0, "{d:?}");
     assert_eq!(d.friction_rows, 0);
     // Damping and gravity switched on show up in the counters.
-    app.world_mut().resource_mut::<SoftTissueConfig>().gravity = Some(bevy::math::DVec3::new(0.0, 0.0, -9.81));
+    app.world_mut().resource_mut::<SoftTissueConfig>().gravity =
+        Some(bevy::math::DVec3::new(0.0, 0.0, -9.81));
     steps(&mut app, 2);
-    assert!(app.world().resource::<SoftTissueDiagnostics>().gravity_bodies > 0);
+    assert!(
+        app.world()
+            .resource::<SoftTissueDiagnostics>()
+            .gravity_bodies
+            > 0
+    );
     assert_eq!(app.world().resource::<SoftTissueDiagnostics>().errors, 0);
 }
 
@@ -174,7 +236,10 @@ fn absent_effects_cost_nothing() {
 fn user_systems_move_tools_before_detection() {
     #[derive(Resource, Default)]
     struct Seen(Vec<f32>);
-    let mut app = app(SoftTissueConfig { timestep: H, ..Default::default() });
+    let mut app = app(SoftTissueConfig {
+        timestep: H,
+        ..Default::default()
+    });
     app.init_resource::<Seen>();
     app.add_systems(FixedUpdate, |mut q: Query<&mut Transform, With<Tool>>| {
         for mut t in &mut q {
@@ -192,7 +257,10 @@ fn user_systems_move_tools_before_detection() {
         .before(SoftTissueSystems::Compliance),
     );
     app.world_mut().spawn(cube(1e-3, 1, 0.0));
-    app.world_mut().spawn((Tool::new(ToolShape::Sphere { radius: 1e-3 }, 0.0).unwrap(), Transform::from_xyz(10.0, 0.0, 0.0)));
+    app.world_mut().spawn((
+        Tool::new(ToolShape::Sphere { radius: 1e-3 }, 0.0).unwrap(),
+        Transform::from_xyz(10.0, 0.0, 0.0),
+    ));
     steps(&mut app, 3);
     let seen = &app.world().resource::<Seen>().0;
     assert_eq!(seen[..3], [11.0, 12.0, 13.0]);
@@ -202,13 +270,28 @@ fn user_systems_move_tools_before_detection() {
 fn cataract_scene_runs_headless() {
     use bevy_soft_tissue::scenes::{cataract::CataractParams, run_headless};
     let params = CataractParams::coarse();
-    let config = SoftTissueConfig { timestep: 1.0 / 60.0, ..Default::default() };
+    let config = SoftTissueConfig {
+        timestep: 1.0 / 60.0,
+        ..Default::default()
+    };
     let s = run_headless(&params, config, 240).unwrap();
     println!("{s:?}");
-    assert!(s.max_penetration <= s.tolerance, "penetration {} > {}", s.max_penetration, s.tolerance);
-    assert!(s.contacts.1 > 10, "the vectis never engaged the lens: {:?}", s.contacts);
+    assert!(
+        s.max_penetration <= s.tolerance,
+        "penetration {} > {}",
+        s.max_penetration,
+        s.tolerance
+    );
+    assert!(
+        s.contacts.1 > 10,
+        "the vectis never engaged the lens: {:?}",
+        s.contacts
+    );
     // The lens moves toward the incision (+y, +z).
     let d = bevy_soft_tissue::scenes::cataract::incision_direction(&params);
     let moved = (s.lens_center.1 - s.lens_center.0).dot(&d);
-    assert!(moved > 0.5e-3, "lens moved only {moved} m toward the incision");
+    assert!(
+        moved > 0.5e-3,
+        "lens moved only {moved} m toward the incision"
+    );
 }

@@ -152,9 +152,25 @@ struct Scratch {
     cols: Vec<u32>,
 }
 
+/// A copy of the preconditioner's factor that `W` and the correction keep
+/// using for a few steps after the preconditioner moved on, so that the node
+/// columns stay cached (see [`crate::contact::ContactSettings::factor_reuse`]).
+#[derive(Debug, Default)]
+struct Snapshot {
+    factor: Option<LdltFactor>,
+    rotations: Vec<Mat3>,
+    warp: Vec<Mat3>,
+    version: u64,
+    step: u64,
+    warped: bool,
+}
+
 /// Per-body compliance state, kept between steps.
 #[derive(Debug, Default)]
 pub struct BodyCompliance {
+    /// Steps a factor snapshot may serve after a newer factor exists (0: always the newest).
+    pub reuse_steps: u64,
+    snap: Snapshot,
     cache: ColumnCache,
     own: Option<LdltFactor>,
     own_symbolic: Option<Arc<LdltSymbolic>>,
@@ -227,7 +243,10 @@ impl ColumnCache {
         let pb = &self.paths[cb.start..cb.start + cb.len];
         // Tree paths to the root share a common suffix (from the lowest common ancestor).
         let mut common = 0;
-        while common < pa.len() && common < pb.len() && pa[pa.len() - 1 - common] == pb[pb.len() - 1 - common] {
+        while common < pa.len()
+            && common < pb.len()
+            && pa[pa.len() - 1 - common] == pb[pb.len() - 1 - common]
+        {
             common += 1;
         }
         let (i, j) = (pa.len() - common, pb.len() - common);
@@ -235,7 +254,8 @@ impl ColumnCache {
         for ia in 0..3 {
             let za = &self.soa_z[ca.soa + ia * 3 * ca.len + 3 * i..ca.soa + (ia + 1) * 3 * ca.len];
             for jb in 0..3 {
-                let sb = &self.soa_s[cb.soa + jb * 3 * cb.len + 3 * j..cb.soa + (jb + 1) * 3 * cb.len];
+                let sb =
+                    &self.soa_s[cb.soa + jb * 3 * cb.len + 3 * j..cb.soa + (jb + 1) * 3 * cb.len];
                 g[(ia, jb)] = dot(za, sb);
             }
         }
@@ -245,7 +265,52 @@ impl ColumnCache {
     }
 }
 
+/// Updates `snap` from the body's preconditioner factor when it is older than
+/// `reuse` steps (or absent), and recomputes its rotation warp.
+fn refresh_snapshot(snap: &mut Snapshot, body: &DeformableBody, reuse: u64) -> Result<()> {
+    let st = body
+        .preconditioner()
+        .factor_state()
+        .ok_or(SoftTissueError::NonFinite("factor"))?;
+    let stale = match &snap.factor {
+        None => true,
+        Some(f) => {
+            !Arc::ptr_eq(&f.symbolic, &st.factor.symbolic)
+                || (snap.version != st.version && body.step_index() >= snap.step + reuse)
+        }
+    };
+    if stale {
+        match &mut snap.factor {
+            Some(f) if Arc::ptr_eq(&f.symbolic, &st.factor.symbolic) => {
+                f.l.copy_from_slice(&st.factor.l);
+                f.ldiag.copy_from_slice(&st.factor.ldiag);
+                f.d.copy_from_slice(&st.factor.d);
+            }
+            _ => snap.factor = Some(st.factor.clone()),
+        }
+        snap.rotations.clear();
+        snap.rotations.extend_from_slice(&st.rotations);
+        snap.version = st.version;
+        snap.step = body.step_index();
+    }
+    let now = body.node_rotations();
+    snap.warp.resize(now.len(), Mat3::identity());
+    for i in 0..now.len() {
+        snap.warp[i] = now[i] * snap.rotations[i].transpose();
+    }
+    snap.warped = true;
+    Ok(())
+}
+
 impl BodyCompliance {
+    /// Whether `Factorized` W for `body` comes from the snapshot (reuse on and the
+    /// preconditioner keeps node rotations for the warp).
+    fn uses_snapshot(&self, body: &DeformableBody) -> bool {
+        self.reuse_steps > 0
+            && body.settings().preconditioner.needs_rotations()
+            && body.preconditioner().factor_state().is_some()
+    }
+
     /// Fresh state.
     pub fn new() -> Self {
         Self {
@@ -308,13 +373,24 @@ impl BodyCompliance {
         if entries.is_empty() {
             return Ok(());
         }
+        let snapshot = mode == ComplianceMode::Factorized && self.uses_snapshot(body);
+        if snapshot {
+            refresh_snapshot(&mut self.snap, body, self.reuse_steps)?;
+        }
         if let (ComplianceMode::Factorized, Some(backend), Some(st)) =
             (mode, backend, body.preconditioner().factor_state())
         {
+            let (factor, version, warp) = match (&self.snap.factor, snapshot) {
+                (Some(f), true) => (f, self.snap.version, Some(&self.snap.warp[..])),
+                _ => (&st.factor, st.version, st.warped.then_some(&st.warp[..])),
+            };
             for e in entries.iter_mut() {
-                e.j = if st.warped { st.warp[e.node as usize].transpose() * e.h } else { e.h };
+                e.j = match warp {
+                    Some(q) => q[e.node as usize].transpose() * e.h,
+                    None => e.h,
+                };
             }
-            if backend.accumulate(body.id(), &st.factor, st.version, h, entries, w, m)? {
+            if backend.accumulate(body.id(), factor, version, h, entries, w, m)? {
                 return Ok(());
             }
         }
@@ -324,11 +400,12 @@ impl BodyCompliance {
             ComplianceMode::Diagonal => {
                 for &(s, e) in &self.scratch.groups {
                     let k = entries[s].node as usize;
-                    let inv = body
-                        .system_matrix()
-                        .diag(k)
-                        .try_inverse()
-                        .ok_or(SoftTissueError::NotPositiveDefinite { node: k, pivot: 0.0 })?;
+                    let inv = body.system_matrix().diag(k).try_inverse().ok_or(
+                        SoftTissueError::NotPositiveDefinite {
+                            node: k,
+                            pivot: 0.0,
+                        },
+                    )?;
                     for a in s..e {
                         for b in s..e {
                             w[entries[a].row as usize * m + entries[b].row as usize] +=
@@ -371,8 +448,18 @@ impl BodyCompliance {
                     self.refactor_own(body)?;
                 }
                 let (factor, version, warp): (&LdltFactor, u64, Option<&[Mat3]>) = if use_own {
-                    let f = self.own.as_ref().ok_or(SoftTissueError::NonFinite("factor"))?;
+                    let f = self
+                        .own
+                        .as_ref()
+                        .ok_or(SoftTissueError::NonFinite("factor"))?;
                     (f, self.own_version | (1 << 63), None)
+                } else if snapshot {
+                    let f = self
+                        .snap
+                        .factor
+                        .as_ref()
+                        .ok_or(SoftTissueError::NonFinite("factor"))?;
+                    (f, self.snap.version | (1 << 62), Some(&self.snap.warp[..]))
                 } else {
                     let st = body
                         .preconditioner()
@@ -387,7 +474,15 @@ impl BodyCompliance {
                     };
                 }
                 if mode == ComplianceMode::DenseRows {
-                    dense_rows(&mut self.scratch, &mut self.cache, factor, h2, entries, w, m);
+                    dense_rows(
+                        &mut self.scratch,
+                        &mut self.cache,
+                        factor,
+                        h2,
+                        entries,
+                        w,
+                        m,
+                    );
                     return Ok(());
                 }
                 let cache = &mut self.cache;
@@ -426,7 +521,10 @@ impl BodyCompliance {
     fn dense_inverse(&mut self, body: &DeformableBody) -> Result<DMatrix<f64>> {
         let n = body.num_nodes();
         self.refactor_own(body)?;
-        let f = self.own.as_ref().ok_or(SoftTissueError::NonFinite("factor"))?;
+        let f = self
+            .own
+            .as_ref()
+            .ok_or(SoftTissueError::NonFinite("factor"))?;
         let mut inv = DMatrix::zeros(3 * n, 3 * n);
         let mut b = vec![Vec3::zeros(); n];
         let mut x = vec![Vec3::zeros(); n];
@@ -464,12 +562,17 @@ impl BodyCompliance {
             return Ok(());
         }
         let h2 = h * h;
+        let snapshot = mode == ComplianceMode::Factorized && self.uses_snapshot(body);
         let sc = &mut self.scratch;
         match mode {
             ComplianceMode::Diagonal => {
                 for e in entries {
                     let k = e.node as usize;
-                    let inv = body.system_matrix().diag(k).try_inverse().unwrap_or_else(Mat3::zeros);
+                    let inv = body
+                        .system_matrix()
+                        .diag(k)
+                        .try_inverse()
+                        .unwrap_or_else(Mat3::zeros);
                     dx[k] += inv * e.h * (h2 * lambda[e.row as usize]);
                 }
             }
@@ -498,7 +601,20 @@ impl BodyCompliance {
                 let use_own =
                     mode == ComplianceMode::Exact || body.preconditioner().factor_state().is_none();
                 let (f, warp): (&LdltFactor, Option<&[Mat3]>) = if use_own {
-                    (self.own.as_ref().ok_or(SoftTissueError::NonFinite("factor"))?, None)
+                    (
+                        self.own
+                            .as_ref()
+                            .ok_or(SoftTissueError::NonFinite("factor"))?,
+                        None,
+                    )
+                } else if snapshot {
+                    (
+                        self.snap
+                            .factor
+                            .as_ref()
+                            .ok_or(SoftTissueError::NonFinite("factor"))?,
+                        Some(&self.snap.warp[..]),
+                    )
                 } else {
                     let st = body
                         .preconditioner()
@@ -513,12 +629,22 @@ impl BodyCompliance {
                 let cache = &self.cache;
                 let version = if use_own {
                     self.own_version | (1 << 63)
+                } else if snapshot {
+                    self.snap.version | (1 << 62)
                 } else {
-                    body.preconditioner().factor_state().map(|st| st.version).unwrap_or(u64::MAX)
+                    body.preconditioner()
+                        .factor_state()
+                        .map(|st| st.version)
+                        .unwrap_or(u64::MAX)
                 };
                 let cached = mode == ComplianceMode::Factorized
                     && cache.version == version
-                    && entries.iter().all(|e| cache.col_of_node.get(e.node as usize).is_some_and(|&c| c != u32::MAX));
+                    && entries.iter().all(|e| {
+                        cache
+                            .col_of_node
+                            .get(e.node as usize)
+                            .is_some_and(|&c| c != u32::MAX)
+                    });
                 if cached {
                     // Y λ from the cached node columns (their paths only).
                     let mut s = 0;

@@ -30,7 +30,7 @@ pub mod tool;
 use std::collections::HashMap;
 use std::time::Instant;
 
-use crate::body::{NodeConstraint, DeformableBody};
+use crate::body::{DeformableBody, NodeConstraint};
 use crate::error::{Result, SoftTissueError, check_positive};
 use crate::math::Vec3;
 pub use compliance::{BodyCompliance, ComplianceBackend, ComplianceMode, JacEntry};
@@ -58,6 +58,12 @@ pub struct ContactSettings {
     pub max_passes: usize,
     /// Penetration that triggers another pass, metres.
     pub penetration_tolerance: f64,
+    /// Steps that `Factorized` compliance keeps using a factor after the
+    /// preconditioner swapped in a newer one (0: always the newest). Node columns
+    /// and Gram blocks are cached per factor, so reusing one for a few steps makes
+    /// most steps' `W` nearly free; the rotation warp keeps it accurate. Applies
+    /// to bodies whose preconditioner warps (`Periodic`, `Async`).
+    pub factor_reuse: u64,
 }
 
 impl Default for ContactSettings {
@@ -70,6 +76,7 @@ impl Default for ContactSettings {
             lcp: LcpSettings::default(),
             max_passes: 3,
             penetration_tolerance: 1e-6,
+            factor_reuse: 8,
         }
     }
 }
@@ -303,7 +310,12 @@ impl ContactSolver {
     }
 
     /// Phase 1: finds contacts at the bodies' free-motion positions.
-    pub fn detect(&mut self, bodies: &[&DeformableBody], tools: &[&RigidTool], h: f64) -> Result<()> {
+    pub fn detect(
+        &mut self,
+        bodies: &[&DeformableBody],
+        tools: &[&RigidTool],
+        h: f64,
+    ) -> Result<()> {
         let t0 = Instant::now();
         check_positive("h", h)?;
         self.h = h;
@@ -412,7 +424,10 @@ impl ContactSolver {
             });
             let Some((_, t, w)) = best else { continue };
             let [i, j, k] = tris[t];
-            let Some(n) = (xb[j] - xb[i]).cross(&(xb[k] - xb[i])).try_normalize(1e-300) else {
+            let Some(n) = (xb[j] - xb[i])
+                .cross(&(xb[k] - xb[i]))
+                .try_normalize(1e-300)
+            else {
                 continue;
             };
             let q = xb[i] * w[0] + xb[j] * w[1] + xb[k] * w[2];
@@ -454,7 +469,12 @@ impl ContactSolver {
 
     /// Replaces the detected contacts with `contacts` (for custom detection and
     /// benchmarks); `h` is the step size used by the following phases.
-    pub fn set_contacts(&mut self, contacts: &[Contact], bodies: &[&DeformableBody], h: f64) -> Result<()> {
+    pub fn set_contacts(
+        &mut self,
+        contacts: &[Contact],
+        bodies: &[&DeformableBody],
+        h: f64,
+    ) -> Result<()> {
         check_positive("h", h)?;
         for c in contacts {
             let sides = std::iter::once(&c.a).chain(match &c.other {
@@ -462,10 +482,12 @@ impl ContactSolver {
                 ContactOther::Tool(_) => None,
             });
             for side in sides {
-                let body = bodies.get(side.body).ok_or(SoftTissueError::NodeOutOfRange {
-                    node: side.body,
-                    len: bodies.len(),
-                })?;
+                let body = bodies
+                    .get(side.body)
+                    .ok_or(SoftTissueError::NodeOutOfRange {
+                        node: side.body,
+                        len: bodies.len(),
+                    })?;
                 for &n in &side.nodes {
                     if n as usize >= body.num_nodes() {
                         return Err(SoftTissueError::NodeOutOfRange {
@@ -475,7 +497,11 @@ impl ContactSolver {
                     }
                 }
             }
-            let finite = c.normal.iter().chain(c.tangents.iter().flatten()).all(|v| v.is_finite())
+            let finite = c
+                .normal
+                .iter()
+                .chain(c.tangents.iter().flatten())
+                .all(|v| v.is_finite())
                 && c.gap.is_finite()
                 && c.mu.is_finite()
                 && c.mu >= 0.0;
@@ -559,7 +585,11 @@ impl ContactSolver {
                 continue;
             }
             slot.entries.sort_unstable_by_key(|e| (e.node, e.row));
-            slot.mode = body.settings().compliance.unwrap_or(self.settings.compliance);
+            slot.mode = body
+                .settings()
+                .compliance
+                .unwrap_or(self.settings.compliance);
+            slot.compliance.reuse_steps = self.settings.factor_reuse;
             slot.compliance.accumulate(
                 body,
                 slot.mode,
@@ -634,7 +664,11 @@ impl ContactSolver {
     }
 
     /// Phase 4: applies `Δx = h² A⁻¹ Hᵀ λ` to every body and sets tool reactions.
-    pub fn correct(&mut self, bodies: &mut [&mut DeformableBody], tools: &mut [&mut RigidTool]) -> Result<()> {
+    pub fn correct(
+        &mut self,
+        bodies: &mut [&mut DeformableBody],
+        tools: &mut [&mut RigidTool],
+    ) -> Result<()> {
         let t0 = Instant::now();
         for (bi, body) in bodies.iter_mut().enumerate() {
             let Some(slot) = self.slots.get_mut(bi) else {
@@ -664,7 +698,9 @@ impl ContactSolver {
             };
             for c in &self.contacts {
                 if c.other == ContactOther::Tool(ti) {
-                    let f = c.normal * c.force.x + c.tangents[0] * c.force.y + c.tangents[1] * c.force.z;
+                    let f = c.normal * c.force.x
+                        + c.tangents[0] * c.force.y
+                        + c.tangents[1] * c.force.z;
                     let arm = c.point - t.pose().translation.vector;
                     force -= f;
                     torque -= arm.cross(&f);

@@ -89,7 +89,9 @@ fn check_not_flat(points: &[Vec3]) -> Result<()> {
     let p3 = far(&|p| n.dot(&(p - p0)).abs());
     let vol = n.dot(&(p3 - p0)).abs();
     if vol.is_nan() || vol <= 1e-9 * ext.powi(3) {
-        return Err(bad("convex hull is degenerate (coplanar or coincident points)"));
+        return Err(bad(
+            "convex hull is degenerate (coplanar or coincident points)",
+        ));
     }
     Ok(())
 }
@@ -113,11 +115,18 @@ impl ToolShape {
                 for c in half_extents.iter() {
                     finite_pos("box half extent", *c)?;
                 }
-                Ok(SharedShape::cuboid(half_extents.x, half_extents.y, half_extents.z))
+                Ok(SharedShape::cuboid(
+                    half_extents.x,
+                    half_extents.y,
+                    half_extents.z,
+                ))
             }
             ToolShape::ConvexHull { points } => {
                 if points.len() < 4 {
-                    return Err(bad(format!("convex hull needs ≥ 4 points, got {}", points.len())));
+                    return Err(bad(format!(
+                        "convex hull needs ≥ 4 points, got {}",
+                        points.len()
+                    )));
                 }
                 if !points.iter().all(|p| p.iter().all(|c| c.is_finite())) {
                     return Err(bad("convex hull point is not finite"));

@@ -146,20 +146,32 @@ impl GpuCompliance {
             }
             self.pipelines = Some(p);
         }
-        self.pipelines.as_ref().ok_or(SoftTissueError::Gpu("no pipelines".into()))
+        self.pipelines
+            .as_ref()
+            .ok_or(SoftTissueError::Gpu("no pipelines".into()))
     }
 
     fn upload(&mut self, body_id: u64, f: &LdltFactor, version: u64) {
-        if self.factors.get(&body_id).is_some_and(|u| u.version == version) {
+        if self
+            .factors
+            .get(&body_id)
+            .is_some_and(|u| u.version == version)
+        {
             return;
         }
         let s = &*f.symbolic;
         let device = self.device.wgpu_device();
         let col_ptr: Vec<u32> = s.col_ptr.iter().map(|&x| x as u32).collect();
         let row_idx: Vec<u32> = s.row_idx.iter().map(|&x| x as u32).collect();
-        let lvals: Vec<f32> = f.l.iter().flat_map(|m| m.iter().map(|&x| x as f32)).collect();
+        let lvals: Vec<f32> =
+            f.l.iter()
+                .flat_map(|m| m.iter().map(|&x| x as f32))
+                .collect();
         let ldiag: Vec<f32> = f.ldiag.iter().flat_map(|d| d.map(|x| x as f32)).collect();
-        let dinv: Vec<f32> = f.d.iter().flat_map(|d| [1.0 / d.x, 1.0 / d.y, 1.0 / d.z].map(|x| x as f32)).collect();
+        let dinv: Vec<f32> =
+            f.d.iter()
+                .flat_map(|d| [1.0 / d.x, 1.0 / d.y, 1.0 / d.z].map(|x| x as f32))
+                .collect();
         let up = UploadedFactor {
             version,
             n: s.n as u32,
@@ -237,7 +249,10 @@ impl GpuCompliance {
         let ent_node: Vec<u32> = by_row.iter().map(|e| e.1).collect();
         let ent_j: Vec<f32> = by_row.iter().flat_map(|e| e.2).collect();
 
-        let up = self.factors.get(&body_id).ok_or(SoftTissueError::Gpu("factor not uploaded".into()))?;
+        let up = self
+            .factors
+            .get(&body_id)
+            .ok_or(SoftTissueError::Gpu("factor not uploaded".into()))?;
         let n = up.n;
         let device = self.device.wgpu_device();
         let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
@@ -274,7 +289,10 @@ impl GpuCompliance {
             usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
             mapped_at_creation: false,
         });
-        let pl = self.pipelines.as_ref().ok_or(SoftTissueError::Gpu("no pipelines".into()))?;
+        let pl = self
+            .pipelines
+            .as_ref()
+            .ok_or(SoftTissueError::Gpu("no pipelines".into()))?;
         let bind = |pipeline: &wgpu::ComputePipeline, entries: &[(u32, &wgpu::Buffer)]| {
             let e: Vec<wgpu::BindGroupEntry> = entries
                 .iter()
@@ -302,10 +320,26 @@ impl GpuCompliance {
                 (7, &work),
             ],
         );
-        let bg_gram = bind(&pl.gram, &[(0, &params), (5, &paths_buf), (6, &z), (8, &up.dinv), (9, &gram)]);
+        let bg_gram = bind(
+            &pl.gram,
+            &[
+                (0, &params),
+                (5, &paths_buf),
+                (6, &z),
+                (8, &up.dinv),
+                (9, &gram),
+            ],
+        );
         let bg_contract = bind(
             &pl.contract,
-            &[(0, &params), (9, &gram), (10, &row_ptr_buf), (11, &ent_node_buf), (12, &ent_j_buf), (13, &w)],
+            &[
+                (0, &params),
+                (9, &gram),
+                (10, &row_ptr_buf),
+                (11, &ent_node_buf),
+                (12, &ent_j_buf),
+                (13, &w),
+            ],
         );
         let mut enc = device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
             label: Some("soft_tissue_compliance"),
@@ -367,7 +401,11 @@ impl ComplianceBackend for GpuCompliance {
         w: &mut [f64],
         m: usize,
     ) -> Result<bool> {
-        let contacts = entries.iter().map(|e| e.row).collect::<std::collections::BTreeSet<_>>().len();
+        let contacts = entries
+            .iter()
+            .map(|e| e.row)
+            .collect::<std::collections::BTreeSet<_>>()
+            .len();
         let on = match self.mode {
             GpuMode::Off => false,
             GpuMode::On => true,

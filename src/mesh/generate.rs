@@ -51,10 +51,7 @@ fn kuhn_split(c: &[[[usize; 2]; 2]; 2], out: &mut Vec<[usize; 4]>) {
     }
 }
 
-fn grid(
-    cells: [usize; 3],
-    map: impl Fn([f64; 3]) -> Vec3,
-) -> (Vec<Vec3>, Vec<[usize; 4]>) {
+fn grid(cells: [usize; 3], map: impl Fn([f64; 3]) -> Vec3) -> (Vec<Vec3>, Vec<[usize; 4]>) {
     let [nx, ny, nz] = cells;
     let id = |i: usize, j: usize, k: usize| (k * (ny + 1) + j) * (nx + 1) + i;
     let mut pos = Vec::with_capacity((nx + 1) * (ny + 1) * (nz + 1));
@@ -148,7 +145,8 @@ pub struct Incision {
     pub azimuth: f64,
     /// Length of the slit along the azimuthal direction, metres.
     pub length: f64,
-    /// Width of the slit across it, metres (at least one element row is removed).
+    /// Width of the slit across it, metres: every element row the band
+    /// `polar ± width / 2` touches is removed, so the slit is at least one row wide.
     pub width: f64,
 }
 
@@ -205,9 +203,17 @@ fn split_prism(p: [usize; 6], out: &mut Vec<[usize; 4]>) {
     let m = (0..6).min_by_key(|&i| p[i]).unwrap_or(0);
     let v = ROT[m].map(|i| p[i]);
     if v[1].min(v[5]) < v[2].min(v[4]) {
-        out.extend([[v[0], v[1], v[2], v[5]], [v[0], v[1], v[5], v[4]], [v[0], v[4], v[5], v[3]]]);
+        out.extend([
+            [v[0], v[1], v[2], v[5]],
+            [v[0], v[1], v[5], v[4]],
+            [v[0], v[4], v[5], v[3]],
+        ]);
     } else {
-        out.extend([[v[0], v[1], v[2], v[4]], [v[0], v[4], v[2], v[5]], [v[0], v[4], v[5], v[3]]]);
+        out.extend([
+            [v[0], v[1], v[2], v[4]],
+            [v[0], v[4], v[2], v[5]],
+            [v[0], v[4], v[5], v[3]],
+        ]);
     }
 }
 
@@ -236,9 +242,8 @@ pub fn eye_shell(p: &EyeShell) -> Result<TetMesh> {
     // Surface lattice points of the cube {0..n}³.
     let mut lattice = std::collections::HashMap::new();
     let mut dirs: Vec<Vec3> = Vec::new();
-    let on_surface = |i: usize, j: usize, k: usize| {
-        i == 0 || j == 0 || k == 0 || i == n || j == n || k == n
-    };
+    let on_surface =
+        |i: usize, j: usize, k: usize| i == 0 || j == 0 || k == 0 || i == n || j == n || k == n;
     for k in 0..=n {
         for j in 0..=n {
             for i in 0..=n {
@@ -257,16 +262,24 @@ pub fn eye_shell(p: &EyeShell) -> Result<TetMesh> {
     // so the slit has straight walls.
     let mut tris: Vec<[usize; 3]> = Vec::new();
     let r_mid = p.radius - 0.5 * p.thickness;
+    // A quad is cut when the slit's band (polar angle ± half the width) overlaps
+    // the quad's polar range and the quad's centre is within half the length.
     let in_slit = |q: &[usize; 4]| {
         p.incision.as_ref().is_some_and(|inc| {
+            let polar = |d: &Vec3| d.z.clamp(-1.0, 1.0).acos();
+            let (lo, hi) = q
+                .iter()
+                .map(|&v| polar(&dirs[v]))
+                .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), x| {
+                    (a.min(x), b.max(x))
+                });
+            let half = 0.5 * inc.width / r_mid;
             let c = (dirs[q[0]] + dirs[q[1]] + dirs[q[2]] + dirs[q[3]]).normalize();
-            let polar = c.z.clamp(-1.0, 1.0).acos();
             let dphi = (c.y.atan2(c.x) - inc.azimuth + std::f64::consts::PI)
                 .rem_euclid(2.0 * std::f64::consts::PI)
                 - std::f64::consts::PI;
-            let across = (polar - inc.polar).abs() * r_mid;
             let along = dphi.abs() * r_mid * inc.polar.sin();
-            across < 0.5 * inc.width && along < 0.5 * inc.length
+            lo <= inc.polar + half && hi >= inc.polar - half && along < 0.5 * inc.length
         })
     };
     for axis in 0..3 {

@@ -75,7 +75,11 @@ pub fn parse_msh(bytes: &[u8], options: ValidateOptions) -> Result<TetMesh> {
             if e.nodes.len() < 4 {
                 return Err(parse_err(
                     F,
-                    format!("element {} has {} nodes, expected 4", e.element_tag, e.nodes.len()),
+                    format!(
+                        "element {} has {} nodes, expected 4",
+                        e.element_tag,
+                        e.nodes.len()
+                    ),
                 ));
             }
             let mut tet = [0usize; 4];
@@ -83,7 +87,10 @@ pub fn parse_msh(bytes: &[u8], options: ValidateOptions) -> Result<TetMesh> {
                 tet[k] = *tag_to_index.get(tag).ok_or_else(|| {
                     parse_err(
                         F,
-                        format!("element {} references unknown node tag {tag}", e.element_tag),
+                        format!(
+                            "element {} references unknown node tag {tag}",
+                            e.element_tag
+                        ),
                     )
                 })?;
             }
@@ -170,7 +177,10 @@ pub fn write_msh(mesh: &TetMesh, binary: bool) -> Vec<u8> {
     } else {
         use std::fmt::Write;
         let mut s = String::new();
-        let _ = writeln!(s, "$MeshFormat\n4.1 0 8\n$EndMeshFormat\n$Nodes\n1 {n} 1 {n}\n3 1 0 {n}");
+        let _ = writeln!(
+            s,
+            "$MeshFormat\n4.1 0 8\n$EndMeshFormat\n$Nodes\n1 {n} 1 {n}\n3 1 0 {n}"
+        );
         for i in 1..=n {
             let _ = writeln!(s, "{i}");
         }
@@ -179,7 +189,15 @@ pub fn write_msh(mesh: &TetMesh, binary: bool) -> Vec<u8> {
         }
         let _ = writeln!(s, "$EndNodes\n$Elements\n1 {m} 1 {m}\n3 1 4 {m}");
         for (i, t) in mesh.tets().iter().enumerate() {
-            let _ = writeln!(s, "{} {} {} {} {}", i + 1, t[0] + 1, t[1] + 1, t[2] + 1, t[3] + 1);
+            let _ = writeln!(
+                s,
+                "{} {} {} {} {}",
+                i + 1,
+                t[0] + 1,
+                t[1] + 1,
+                t[2] + 1,
+                t[3] + 1
+            );
         }
         s.push_str("$EndElements\n");
         out = s.into_bytes();
@@ -221,13 +239,14 @@ pub fn parse_tetgen(node: &str, ele: &str, options: ValidateOptions) -> Result<T
     const FN: &str = "TetGen .node";
     const FE: &str = "TetGen .ele";
     let mut lines = data_lines(node);
-    let (l, head) = lines
-        .next()
-        .ok_or_else(|| parse_err(FN, "empty file"))?;
+    let (l, head) = lines.next().ok_or_else(|| parse_err(FN, "empty file"))?;
     let count: usize = num(FN, l, head.first())?;
     let dim: usize = num(FN, l, head.get(1))?;
     if dim != 3 {
-        return Err(parse_err(FN, format!("line {l}: dimension {dim}, expected 3")));
+        return Err(parse_err(
+            FN,
+            format!("line {l}: dimension {dim}, expected 3"),
+        ));
     }
     let mut positions = Vec::with_capacity(count.min(1 << 24));
     let mut first_index = 0usize;
@@ -236,11 +255,17 @@ pub fn parse_tetgen(node: &str, ele: &str, options: ValidateOptions) -> Result<T
         if i == 0 {
             first_index = idx;
             if idx > 1 {
-                return Err(parse_err(FN, format!("line {l}: first index {idx}, expected 0 or 1")));
+                return Err(parse_err(
+                    FN,
+                    format!("line {l}: first index {idx}, expected 0 or 1"),
+                ));
             }
         }
         if idx != first_index + i {
-            return Err(parse_err(FN, format!("line {l}: point index {idx} out of sequence")));
+            return Err(parse_err(
+                FN,
+                format!("line {l}: point index {idx} out of sequence"),
+            ));
         }
         let x: f64 = num(FN, l, toks.get(1))?;
         let y: f64 = num(FN, l, toks.get(2))?;
@@ -250,17 +275,21 @@ pub fn parse_tetgen(node: &str, ele: &str, options: ValidateOptions) -> Result<T
     if positions.len() != count {
         return Err(parse_err(
             FN,
-            format!("header announces {count} points, file has {}", positions.len()),
+            format!(
+                "header announces {count} points, file has {}",
+                positions.len()
+            ),
         ));
     }
     let mut lines = data_lines(ele);
-    let (l, head) = lines
-        .next()
-        .ok_or_else(|| parse_err(FE, "empty file"))?;
+    let (l, head) = lines.next().ok_or_else(|| parse_err(FE, "empty file"))?;
     let count: usize = num(FE, l, head.first())?;
     let per: usize = num(FE, l, head.get(1))?;
     if per != 4 && per != 10 {
-        return Err(parse_err(FE, format!("line {l}: {per} nodes per element, expected 4 or 10")));
+        return Err(parse_err(
+            FE,
+            format!("line {l}: {per} nodes per element, expected 4 or 10"),
+        ));
     }
     let mut tets = Vec::with_capacity(count.min(1 << 24));
     for (l, toks) in lines.take(count) {
@@ -268,7 +297,10 @@ pub fn parse_tetgen(node: &str, ele: &str, options: ValidateOptions) -> Result<T
         for (k, v) in t.iter_mut().enumerate() {
             let raw: usize = num(FE, l, toks.get(k + 1))?;
             *v = raw.checked_sub(first_index).ok_or_else(|| {
-                parse_err(FE, format!("line {l}: node index {raw} below the first index {first_index}"))
+                parse_err(
+                    FE,
+                    format!("line {l}: node index {raw} below the first index {first_index}"),
+                )
             })?;
         }
         tets.push(t);
@@ -276,7 +308,10 @@ pub fn parse_tetgen(node: &str, ele: &str, options: ValidateOptions) -> Result<T
     if tets.len() != count {
         return Err(parse_err(
             FE,
-            format!("header announces {count} tetrahedra, file has {}", tets.len()),
+            format!(
+                "header announces {count} tetrahedra, file has {}",
+                tets.len()
+            ),
         ));
     }
     TetMesh::with_options(positions, tets, options)

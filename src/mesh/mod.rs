@@ -69,9 +69,13 @@ pub struct Surface {
 impl Surface {
     /// Triangles expressed directly in volume-vertex indices.
     pub fn volume_triangles(&self) -> impl Iterator<Item = [usize; 3]> + '_ {
-        self.triangles
-            .iter()
-            .map(|t| [self.vertices[t[0]], self.vertices[t[1]], self.vertices[t[2]]])
+        self.triangles.iter().map(|t| {
+            [
+                self.vertices[t[0]],
+                self.vertices[t[1]],
+                self.vertices[t[2]],
+            ]
+        })
     }
 }
 
@@ -130,14 +134,21 @@ impl TetMesh {
                 .iter()
                 .map(|e| e.norm())
                 .fold(0.0, f64::max);
-            if !vol.is_finite() || 6.0 * vol.abs() <= options.min_relative_volume * longest.powi(3) {
-                return Err(SoftTissueError::DegenerateTet { tet: t, volume: vol });
+            if !vol.is_finite() || 6.0 * vol.abs() <= options.min_relative_volume * longest.powi(3)
+            {
+                return Err(SoftTissueError::DegenerateTet {
+                    tet: t,
+                    volume: vol,
+                });
             }
             if vol < 0.0 {
                 if options.reorient {
                     tet.swap(2, 3);
                 } else {
-                    return Err(SoftTissueError::InvertedTet { tet: t, volume: vol });
+                    return Err(SoftTissueError::InvertedTet {
+                        tet: t,
+                        volume: vol,
+                    });
                 }
             }
             for &v in tet.iter() {
@@ -183,7 +194,11 @@ impl TetMesh {
 
     /// Centroid of tetrahedron `t`.
     pub fn tet_centroid(&self, t: usize) -> Vec3 {
-        self.tets[t].iter().map(|&v| self.positions[v]).sum::<Vec3>() / 4.0
+        self.tets[t]
+            .iter()
+            .map(|&v| self.positions[v])
+            .sum::<Vec3>()
+            / 4.0
     }
 
     /// Shortest edge length over all tetrahedra.
@@ -239,7 +254,10 @@ impl TetMesh {
                 let tri = [tet[f[0]], tet[f[1]], tet[f[2]]];
                 let mut key = tri;
                 key.sort_unstable();
-                count.entry(key).and_modify(|e| e.0 += 1).or_insert((1, tri, ti));
+                count
+                    .entry(key)
+                    .and_modify(|e| e.0 += 1)
+                    .or_insert((1, tri, ti));
             }
         }
         let mut boundary: Vec<([usize; 3], usize)> = count

@@ -119,7 +119,8 @@ pub mod paths {
     /// Whole step, ms.
     pub const STEP: DiagnosticPath = DiagnosticPath::const_new("soft_tissue/step_ms");
     /// CG iterations.
-    pub const CG_ITERATIONS: DiagnosticPath = DiagnosticPath::const_new("soft_tissue/cg_iterations");
+    pub const CG_ITERATIONS: DiagnosticPath =
+        DiagnosticPath::const_new("soft_tissue/cg_iterations");
     /// Factor age, steps.
     pub const FACTOR_AGE: DiagnosticPath = DiagnosticPath::const_new("soft_tissue/factor_age");
     /// Contacts.
@@ -157,7 +158,9 @@ impl Plugin for SoftTissueDiagnosticsPlugin {
         }
         app.add_systems(
             self.schedule,
-            publish.in_set(SoftTissueSystems::Sync).after(super::sync_components),
+            publish
+                .in_set(SoftTissueSystems::Sync)
+                .after(super::sync_components),
         );
     }
 }

@@ -50,7 +50,9 @@ use bevy::ecs::intern::Interned;
 use bevy::ecs::schedule::ScheduleLabel;
 use bevy::prelude::*;
 
-pub use diagnostics::{SoftTissueDiagnostics, SoftTissueDiagnosticsPlugin, paths as diagnostics_paths};
+pub use diagnostics::{
+    SoftTissueDiagnostics, SoftTissueDiagnosticsPlugin, paths as diagnostics_paths,
+};
 
 use crate::body::{BodySettings, DeformableBody};
 use crate::contact::{ComplianceMode, ContactSettings, ContactSolver, RigidTool, ToolShape};
@@ -151,11 +153,19 @@ pub struct SoftBody(pub DeformableBody);
 impl SoftBody {
     /// A body with default solver settings.
     pub fn new(mesh: TetMesh, material: Material) -> Result<Self> {
-        Ok(Self(DeformableBody::new(mesh, material, BodySettings::default())?))
+        Ok(Self(DeformableBody::new(
+            mesh,
+            material,
+            BodySettings::default(),
+        )?))
     }
 
     /// A body with explicit solver settings.
-    pub fn with_settings(mesh: TetMesh, material: Material, settings: BodySettings) -> Result<Self> {
+    pub fn with_settings(
+        mesh: TetMesh,
+        material: Material,
+        settings: BodySettings,
+    ) -> Result<Self> {
         Ok(Self(DeformableBody::new(mesh, material, settings)?))
     }
 }
@@ -168,7 +178,9 @@ pub struct Tool(pub RigidTool);
 impl Tool {
     /// A tool of `shape` with friction `mu`, placed by its `Transform`.
     pub fn new(shape: ToolShape, mu: f64) -> Result<Self> {
-        Ok(Self(RigidTool::new(shape, crate::contact::Pose::identity())?.with_friction(mu)?))
+        Ok(Self(
+            RigidTool::new(shape, crate::contact::Pose::identity())?.with_friction(mu)?,
+        ))
     }
 }
 
@@ -344,7 +356,10 @@ pub struct SyncPlugin {
 
 impl Plugin for SyncPlugin {
     fn build(&self, app: &mut App) {
-        app.add_systems(self.schedule, sync_components.in_set(SoftTissueSystems::Sync));
+        app.add_systems(
+            self.schedule,
+            sync_components.in_set(SoftTissueSystems::Sync),
+        );
         #[cfg(feature = "viewer")]
         app.add_plugins(render::RenderSyncPlugin {
             schedule: self.schedule,
@@ -399,7 +414,8 @@ fn assemble(
 ) {
     diag.begin_step();
     for mut body in &mut bodies {
-        let rest = body.settings().compliance.unwrap_or(config.compliance) == ComplianceMode::RestPrecomputed;
+        let rest = body.settings().compliance.unwrap_or(config.compliance)
+            == ComplianceMode::RestPrecomputed;
         body.request_node_rotations(rest && contacts.active);
         if let Err(e) = body.assemble(config.timestep) {
             diag.errors += 1;
@@ -472,7 +488,8 @@ fn detect(
         contacts.tools.push(e);
     }
     contacts.tools.sort_unstable();
-    let can_touch = !contacts.bodies.is_empty() && (!contacts.tools.is_empty() || contacts.bodies.len() > 1);
+    let can_touch =
+        !contacts.bodies.is_empty() && (!contacts.tools.is_empty() || contacts.bodies.len() > 1);
     contacts.active = config.contacts && can_touch;
     if !contacts.active {
         return;
@@ -544,7 +561,11 @@ fn compliance(
         return;
     }
     let contacts = &mut *contacts;
-    let b: Vec<&DeformableBody> = contacts.bodies.iter().filter_map(|e| bodies.get(*e).ok().map(|b| &b.0)).collect();
+    let b: Vec<&DeformableBody> = contacts
+        .bodies
+        .iter()
+        .filter_map(|e| bodies.get(*e).ok().map(|b| &b.0))
+        .collect();
     diag.compliance_builds += 1;
     #[cfg(feature = "gpu")]
     let result = match gpu {
@@ -570,12 +591,20 @@ fn compliance(
     }
 }
 
-fn lcp(mut contacts: ResMut<SoftTissueContacts>, bodies: Query<&SoftBody>, mut diag: ResMut<SoftTissueDiagnostics>) {
+fn lcp(
+    mut contacts: ResMut<SoftTissueContacts>,
+    bodies: Query<&SoftBody>,
+    mut diag: ResMut<SoftTissueDiagnostics>,
+) {
     if !contacts.active {
         return;
     }
     let contacts = &mut *contacts;
-    let b: Vec<&DeformableBody> = contacts.bodies.iter().filter_map(|e| bodies.get(*e).ok().map(|b| &b.0)).collect();
+    let b: Vec<&DeformableBody> = contacts
+        .bodies
+        .iter()
+        .filter_map(|e| bodies.get(*e).ok().map(|b| &b.0))
+        .collect();
     diag.lcp_solves += 1;
     contacts.solver.solve_lcp(&b);
 }

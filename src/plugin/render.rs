@@ -23,6 +23,67 @@ pub enum BodyColoring {
     Stiffness,
 }
 
+/// The render mesh of a body's stiff core (the boundary of its stiffer elements),
+/// drawn inside the translucent surface when the body is coloured by stiffness.
+#[derive(Component, Debug, Clone)]
+pub struct CoreMesh {
+    /// The body entity.
+    pub body: Entity,
+    /// Volume vertices of the core boundary.
+    pub vertices: Vec<usize>,
+    /// Triangles as indices into `vertices`.
+    pub triangles: Vec<[usize; 3]>,
+    /// The mesh asset.
+    pub handle: Handle<Mesh>,
+}
+
+/// Boundary of the elements stiffer than the geometric mean of the softest and
+/// stiffest: `(vertices, triangles)`; empty for a uniform body.
+fn core_surface(body: &SoftBody) -> (Vec<usize>, Vec<[usize; 3]>) {
+    let young = body.element_young();
+    let (lo, hi) = young
+        .iter()
+        .fold((f64::INFINITY, 0.0f64), |(a, b), &e| (a.min(e), b.max(e)));
+    if hi <= lo * 1.5 {
+        return (Vec::new(), Vec::new());
+    }
+    let threshold = (lo * hi).sqrt();
+    let mut faces: std::collections::HashMap<[usize; 3], (usize, [usize; 3])> =
+        std::collections::HashMap::new();
+    for (t, tet) in body.mesh().tets().iter().enumerate() {
+        if young[t] < threshold {
+            continue;
+        }
+        for f in crate::mesh::TET_FACES {
+            let tri = [tet[f[0]], tet[f[1]], tet[f[2]]];
+            let mut key = tri;
+            key.sort_unstable();
+            faces
+                .entry(key)
+                .and_modify(|e| e.0 += 1)
+                .or_insert((1, tri));
+        }
+    }
+    let mut map = std::collections::HashMap::new();
+    let mut vertices = Vec::new();
+    let mut triangles = Vec::new();
+    let mut list: Vec<[usize; 3]> = faces
+        .into_values()
+        .filter(|e| e.0 == 1)
+        .map(|e| e.1)
+        .collect();
+    list.sort_unstable();
+    for tri in list {
+        triangles.push(tri.map(|v| {
+            *map.entry(v).or_insert_with(|| {
+                vertices.push(v);
+                vertices.len() - 1
+            })
+        }));
+    }
+    (vertices, triangles)
+}
+
 /// Links a body to its render mesh.
 #[derive(Component, Debug, Clone)]
 pub struct SurfaceMesh {
@@ -38,14 +99,18 @@ pub struct RenderSyncPlugin {
 impl Plugin for RenderSyncPlugin {
     fn build(&self, app: &mut App) {
         // Headless apps (no asset server or PBR) simply skip render sync.
-        let rendering = resource_exists::<Assets<Mesh>>.and_then(resource_exists::<Assets<StandardMaterial>>);
-        app.add_systems(Update, (attach_body_meshes, attach_tool_meshes).run_if(rendering))
-            .add_systems(
-                self.schedule,
-                update_body_meshes
-                    .in_set(SoftTissueSystems::Sync)
-                    .run_if(resource_exists::<Assets<Mesh>>),
-            );
+        let rendering =
+            resource_exists::<Assets<Mesh>>.and_then(resource_exists::<Assets<StandardMaterial>>);
+        app.add_systems(
+            Update,
+            (attach_body_meshes, attach_tool_meshes).run_if(rendering),
+        )
+        .add_systems(
+            self.schedule,
+            update_body_meshes
+                .in_set(SoftTissueSystems::Sync)
+                .run_if(resource_exists::<Assets<Mesh>>),
+        );
     }
 }
 
@@ -62,13 +127,20 @@ fn stiffness_colors(body: &SoftBody) -> Vec<[f32; 4]> {
     }
     let (lo, hi) = young
         .iter()
-        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &e| (a.min(e.ln()), b.max(e.ln())));
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &e| {
+            (a.min(e.ln()), b.max(e.ln()))
+        });
     body.surface()
         .vertices
         .iter()
         .map(|&v| {
-            let s = if hi > lo { ((sum[v] / count[v] - lo) / (hi - lo)) as f32 } else { 0.0 };
-            let c = Color::srgb(0.25 + 0.75 * s, 0.35 * (1.0 - s) + 0.15, 1.0 - 0.8 * s).to_linear();
+            let s = if hi > lo {
+                ((sum[v] / count[v] - lo) / (hi - lo)) as f32
+            } else {
+                0.0
+            };
+            let c =
+                Color::srgb(0.25 + 0.75 * s, 0.35 * (1.0 - s) + 0.15, 1.0 - 0.8 * s).to_linear();
             [c.red, c.green, c.blue, 1.0]
         })
         .collect()
@@ -113,16 +185,61 @@ fn attach_body_meshes(
             BodyColoring::Stiffness => stiffness_colors(body),
             BodyColoring::Solid(_) => vec![[1.0; 4]; pos.len()],
         };
-        let mesh = Mesh::new(PrimitiveTopology::TriangleList, RenderAssetUsages::default())
-            .with_inserted_attribute(Mesh::ATTRIBUTE_NORMAL, normals(&pos, tris))
-            .with_inserted_attribute(Mesh::ATTRIBUTE_POSITION, pos)
-            .with_inserted_attribute(Mesh::ATTRIBUTE_COLOR, colors)
-            .with_inserted_indices(Indices::U32(idx));
+        let mesh = Mesh::new(
+            PrimitiveTopology::TriangleList,
+            RenderAssetUsages::default(),
+        )
+        .with_inserted_attribute(Mesh::ATTRIBUTE_NORMAL, normals(&pos, tris))
+        .with_inserted_attribute(Mesh::ATTRIBUTE_POSITION, pos)
+        .with_inserted_attribute(Mesh::ATTRIBUTE_COLOR, colors)
+        .with_inserted_indices(Indices::U32(idx));
         let handle = meshes.add(mesh);
+        let (core_vertices, core_triangles) = match coloring {
+            BodyColoring::Stiffness => core_surface(body),
+            BodyColoring::Solid(_) => (Vec::new(), Vec::new()),
+        };
+        let has_core = !core_triangles.is_empty();
+        if has_core {
+            let pos: Vec<[f32; 3]> = core_vertices
+                .iter()
+                .map(|&v| body.positions()[v].map(|c| c as f32).into())
+                .collect();
+            let idx: Vec<u32> = core_triangles
+                .iter()
+                .flat_map(|t| t.map(|i| i as u32))
+                .collect();
+            let core = Mesh::new(
+                PrimitiveTopology::TriangleList,
+                RenderAssetUsages::default(),
+            )
+            .with_inserted_attribute(Mesh::ATTRIBUTE_NORMAL, normals(&pos, &core_triangles))
+            .with_inserted_attribute(Mesh::ATTRIBUTE_POSITION, pos)
+            .with_inserted_indices(Indices::U32(idx));
+            let core_handle = meshes.add(core);
+            commands.spawn((
+                CoreMesh {
+                    body: e,
+                    vertices: core_vertices,
+                    triangles: core_triangles,
+                    handle: core_handle.clone(),
+                },
+                Mesh3d(core_handle),
+                MeshMaterial3d(materials.add(StandardMaterial {
+                    base_color: Color::srgb(0.85, 0.15, 0.1),
+                    perceptual_roughness: 0.5,
+                    ..Default::default()
+                })),
+                Transform::default(),
+            ));
+        }
         let material = match coloring {
             BodyColoring::Solid(c) => StandardMaterial {
                 base_color: c,
-                alpha_mode: if c.alpha() < 1.0 { AlphaMode::Blend } else { AlphaMode::Opaque },
+                alpha_mode: if c.alpha() < 1.0 {
+                    AlphaMode::Blend
+                } else {
+                    AlphaMode::Opaque
+                },
                 double_sided: true,
                 cull_mode: None,
                 perceptual_roughness: 0.6,
@@ -130,28 +247,67 @@ fn attach_body_meshes(
             },
             BodyColoring::Stiffness => StandardMaterial {
                 perceptual_roughness: 0.5,
+                // See the stiff core through a translucent surface.
+                base_color: Color::srgba(1.0, 1.0, 1.0, if has_core { 0.45 } else { 1.0 }),
+                alpha_mode: if has_core {
+                    AlphaMode::Blend
+                } else {
+                    AlphaMode::Opaque
+                },
                 ..Default::default()
             },
         };
         commands.entity(e).insert((
-            SurfaceMesh { handle: handle.clone() },
+            SurfaceMesh {
+                handle: handle.clone(),
+            },
             Mesh3d(handle),
             MeshMaterial3d(materials.add(material)),
         ));
     }
 }
 
-fn update_body_meshes(bodies: Query<(&SoftBody, &SurfaceMesh)>, mut meshes: ResMut<Assets<Mesh>>) {
+fn update_body_meshes(
+    bodies: Query<(&SoftBody, &SurfaceMesh)>,
+    cores: Query<&CoreMesh>,
+    mut meshes: ResMut<Assets<Mesh>>,
+) {
+    for core in &cores {
+        let (Ok((body, _)), Some(mut mesh)) = (bodies.get(core.body), meshes.get_mut(&core.handle))
+        else {
+            continue;
+        };
+        let pos: Vec<[f32; 3]> = core
+            .vertices
+            .iter()
+            .map(|&v| body.positions()[v].map(|c| c as f32).into())
+            .collect();
+        let n = normals(&pos, &core.triangles);
+        if let Some(VertexAttributeValues::Float32x3(p)) =
+            mesh.attribute_mut(Mesh::ATTRIBUTE_POSITION)
+        {
+            p.copy_from_slice(&pos);
+        }
+        if let Some(VertexAttributeValues::Float32x3(nn)) =
+            mesh.attribute_mut(Mesh::ATTRIBUTE_NORMAL)
+        {
+            nn.copy_from_slice(&n);
+        }
+    }
     for (body, sm) in &bodies {
         let Some(mut mesh) = meshes.get_mut(&sm.handle) else {
             continue;
         };
         let pos = surface_positions(body);
         let n = normals(&pos, &body.surface().triangles);
-        if let Some(VertexAttributeValues::Float32x3(p)) = mesh.attribute_mut(Mesh::ATTRIBUTE_POSITION) {
+        if let Some(VertexAttributeValues::Float32x3(p)) =
+            mesh.attribute_mut(Mesh::ATTRIBUTE_POSITION)
+        {
             p.copy_from_slice(&pos);
         }
-        if let Some(VertexAttributeValues::Float32x3(nn)) = mesh.attribute_mut(Mesh::ATTRIBUTE_NORMAL) {
+        if let Some(VertexAttributeValues::Float32x3(nn)) =
+            mesh.attribute_mut(Mesh::ATTRIBUTE_NORMAL)
+        {
             nn.copy_from_slice(&n);
         }
     }
@@ -161,9 +317,12 @@ fn update_body_meshes(bodies: Query<(&SoftBody, &SurfaceMesh)>, mut meshes: ResM
 pub fn tool_mesh(shape: &ToolShape) -> Mesh {
     match shape {
         ToolShape::Sphere { radius } => Sphere::new(*radius as f32).mesh().build(),
-        ToolShape::Capsule { half_height, radius } => {
-            Capsule3d::new(*radius as f32, 2.0 * *half_height as f32).mesh().build()
-        }
+        ToolShape::Capsule {
+            half_height,
+            radius,
+        } => Capsule3d::new(*radius as f32, 2.0 * *half_height as f32)
+            .mesh()
+            .build(),
         ToolShape::Box { half_extents } => Cuboid::new(
             2.0 * half_extents.x as f32,
             2.0 * half_extents.y as f32,
@@ -182,13 +341,19 @@ pub fn tool_mesh(shape: &ToolShape) -> Mesh {
             Cuboid::from_corners(lo, hi).mesh().build()
         }
         ToolShape::TriMesh { vertices, indices } => {
-            let pos: Vec<[f32; 3]> = vertices.iter().map(|p| [p.x as f32, p.y as f32, p.z as f32]).collect();
+            let pos: Vec<[f32; 3]> = vertices
+                .iter()
+                .map(|p| [p.x as f32, p.y as f32, p.z as f32])
+                .collect();
             let tris: Vec<[usize; 3]> = indices.iter().map(|t| t.map(|i| i as usize)).collect();
             let idx: Vec<u32> = indices.iter().flatten().copied().collect();
-            Mesh::new(PrimitiveTopology::TriangleList, RenderAssetUsages::default())
-                .with_inserted_attribute(Mesh::ATTRIBUTE_NORMAL, normals(&pos, &tris))
-                .with_inserted_attribute(Mesh::ATTRIBUTE_POSITION, pos)
-                .with_inserted_indices(Indices::U32(idx))
+            Mesh::new(
+                PrimitiveTopology::TriangleList,
+                RenderAssetUsages::default(),
+            )
+            .with_inserted_attribute(Mesh::ATTRIBUTE_NORMAL, normals(&pos, &tris))
+            .with_inserted_attribute(Mesh::ATTRIBUTE_POSITION, pos)
+            .with_inserted_indices(Indices::U32(idx))
         }
     }
 }

@@ -122,7 +122,11 @@ pub fn vectis_shape() -> ToolShape {
         let th = std::f64::consts::PI * j as f64 / nv as f64;
         for i in 0..nu {
             let ph = 2.0 * std::f64::consts::PI * i as f64 / nu as f64;
-            let (x, y, z) = (a * th.sin() * ph.cos(), b * th.sin() * ph.sin(), -c * th.cos());
+            let (x, y, z) = (
+                a * th.sin() * ph.cos(),
+                b * th.sin() * ph.sin(),
+                -c * th.cos(),
+            );
             vertices.push(v3(x, y, z));
         }
     }
@@ -138,7 +142,12 @@ pub fn vectis_shape() -> ToolShape {
     }
     for j in 1..nv - 1 {
         for i in 0..nu {
-            let (p, q, r, s) = (ring(j, i), ring(j, i + 1), ring(j + 1, i), ring(j + 1, i + 1));
+            let (p, q, r, s) = (
+                ring(j, i),
+                ring(j, i + 1),
+                ring(j + 1, i),
+                ring(j + 1, i + 1),
+            );
             indices.push([p, q, s]);
             indices.push([p, s, r]);
         }
@@ -179,7 +188,9 @@ impl ExtractionPath {
                 (4.5, behind + er * 4.0e-3),
                 (8.0, behind + er * 7.0e-3),
             ],
-            rotation: UnitQuaternion::from_rotation_matrix(&nalgebra::Rotation3::from_matrix_unchecked(blade)),
+            rotation: UnitQuaternion::from_rotation_matrix(
+                &nalgebra::Rotation3::from_matrix_unchecked(blade),
+            ),
         }
     }
 
@@ -235,7 +246,8 @@ pub fn build(p: &CataractParams, settings: BodySettings) -> Result<CataractScene
     let r = p.eye.radius;
     eye.fix_where(|x| x.z < -0.35 * r);
     let path = ExtractionPath::new(p);
-    let vectis = RigidTool::new(vectis_shape(), path.pose(0.0))?.with_friction(p.vectis_friction)?;
+    let vectis =
+        RigidTool::new(vectis_shape(), path.pose(0.0))?.with_friction(p.vectis_friction)?;
     let contact = ContactSettings {
         alarm_distance: 0.4e-3,
         body_friction: 0.1,

@@ -41,17 +41,24 @@ pub struct CataractScenePlugin {
 impl Plugin for CataractScenePlugin {
     fn build(&self, app: &mut App) {
         let params = self.params.clone();
-        app.add_systems(Startup, move |mut commands: Commands, config: Res<SoftTissueConfig>| {
-            if let Err(e) = spawn_cataract(&mut commands, &params, &config) {
-                error!("cataract scene: {e}");
-            }
-        })
+        app.add_systems(
+            Startup,
+            move |mut commands: Commands, config: Res<SoftTissueConfig>| {
+                if let Err(e) = spawn_cataract(&mut commands, &params, &config) {
+                    error!("cataract scene: {e}");
+                }
+            },
+        )
         .add_systems(FixedUpdate, drive_vectis);
     }
 }
 
 /// Spawns lens, eye and vectis entities.
-pub fn spawn_cataract(commands: &mut Commands, params: &CataractParams, config: &SoftTissueConfig) -> Result<()> {
+pub fn spawn_cataract(
+    commands: &mut Commands,
+    params: &CataractParams,
+    config: &SoftTissueConfig,
+) -> Result<()> {
     let settings = BodySettings {
         preconditioner: config.preconditioner,
         ..Default::default()
@@ -78,10 +85,7 @@ pub fn pose_to_transform(p: &crate::contact::Pose) -> Transform {
     let t = p.translation.vector;
     let q = p.rotation;
     Transform::from_xyz(t.x as f32, t.y as f32, t.z as f32).with_rotation(Quat::from_xyzw(
-        q.i as f32,
-        q.j as f32,
-        q.k as f32,
-        q.w as f32,
+        q.i as f32, q.j as f32, q.k as f32, q.w as f32,
     ))
 }
 
@@ -121,12 +125,23 @@ pub struct HeadlessSummary {
 /// Runs the cataract scene without a window for `steps` fixed steps and
 /// measures it. Fails on NaN or on errors reported by the pipeline; the caller
 /// compares [`HeadlessSummary::max_penetration`] with its tolerance.
-pub fn run_headless(params: &CataractParams, config: SoftTissueConfig, steps: usize) -> Result<HeadlessSummary> {
+pub fn run_headless(
+    params: &CataractParams,
+    config: SoftTissueConfig,
+    steps: usize,
+) -> Result<HeadlessSummary> {
     let h = config.timestep;
     let mut app = App::new();
-    app.add_plugins((MinimalPlugins, crate::SoftTissuePlugin::default().with_config(config)))
-        .add_plugins(CataractScenePlugin { params: params.clone() })
-        .insert_resource(bevy::time::TimeUpdateStrategy::ManualDuration(Duration::from_secs_f64(h)));
+    app.add_plugins((
+        MinimalPlugins,
+        crate::SoftTissuePlugin::default().with_config(config),
+    ))
+    .add_plugins(CataractScenePlugin {
+        params: params.clone(),
+    })
+    .insert_resource(bevy::time::TimeUpdateStrategy::ManualDuration(
+        Duration::from_secs_f64(h),
+    ));
     app.update();
     let lens_center = |app: &mut App| {
         let mut q = app.world_mut().query_filtered::<&SoftBody, With<Lens>>();
@@ -134,10 +149,14 @@ pub fn run_headless(params: &CataractParams, config: SoftTissueConfig, steps: us
             .next()
             .map(|b| b.positions().iter().sum::<crate::math::Vec3>() / b.num_nodes() as f64)
     };
-    let start = lens_center(&mut app).ok_or(SoftTissueError::EmptyMesh("cataract scene did not spawn"))?;
+    let start =
+        lens_center(&mut app).ok_or(SoftTissueError::EmptyMesh("cataract scene did not spawn"))?;
     let tolerance = {
         let mut q = app.world_mut().query_filtered::<&SoftBody, With<Lens>>();
-        q.iter(app.world()).next().map(|b| 0.01 * b.mesh().min_edge_length()).unwrap_or(0.0)
+        q.iter(app.world())
+            .next()
+            .map(|b| 0.01 * b.mesh().min_edge_length())
+            .unwrap_or(0.0)
     };
     let mut phases: [Vec<f64>; 8] = Default::default();
     let mut contacts = Vec::new();
@@ -164,7 +183,9 @@ pub fn run_headless(params: &CataractParams, config: SoftTissueConfig, steps: us
         last = d.steps;
         done += 1;
         if d.errors > 0 {
-            return Err(SoftTissueError::NonFinite("the pipeline reported an error (see the log)"));
+            return Err(SoftTissueError::NonFinite(
+                "the pipeline reported an error (see the log)",
+            ));
         }
         let v = [
             d.assemble_ms,
@@ -186,9 +207,17 @@ pub fn run_headless(params: &CataractParams, config: SoftTissueConfig, steps: us
         cg += d.cg_iterations;
         // Penetration of lens and eye vertices into the vectis.
         let world = app.world_mut();
-        let tools: Vec<crate::contact::RigidTool> = world.query::<&Tool>().iter(world).map(|t| t.0.clone()).collect();
+        let tools: Vec<crate::contact::RigidTool> = world
+            .query::<&Tool>()
+            .iter(world)
+            .map(|t| t.0.clone())
+            .collect();
         for b in world.query::<&SoftBody>().iter(world) {
-            if !b.positions().iter().all(|p| p.iter().all(|c| c.is_finite())) {
+            if !b
+                .positions()
+                .iter()
+                .all(|p| p.iter().all(|c| c.is_finite()))
+            {
                 return Err(SoftTissueError::NonFinite("body positions"));
             }
             for &v in &b.surface().vertices {
@@ -218,7 +247,10 @@ pub fn run_headless(params: &CataractParams, config: SoftTissueConfig, steps: us
         steps,
         median_ms,
         steps_per_second: 1e3 / median_ms[7],
-        contacts: (c.get(c.len() / 2).copied().unwrap_or(0), c.last().copied().unwrap_or(0)),
+        contacts: (
+            c.get(c.len() / 2).copied().unwrap_or(0),
+            c.last().copied().unwrap_or(0),
+        ),
         cg_iterations: cg as f64 / steps.max(1) as f64,
         max_penetration: max_pen,
         tolerance,

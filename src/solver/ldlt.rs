@@ -256,7 +256,10 @@ impl LdltSymbolic {
             let d1 = dkk[(1, 1)] - l10 * l10 * d0;
             let l21 = (dkk[(2, 1)] - l20 * l10 * d0) / d1;
             let d2 = dkk[(2, 2)] - l20 * l20 * d0 - l21 * l21 * d1;
-            let scale = dkk[(0, 0)].abs().max(dkk[(1, 1)].abs()).max(dkk[(2, 2)].abs());
+            let scale = dkk[(0, 0)]
+                .abs()
+                .max(dkk[(1, 1)].abs())
+                .max(dkk[(2, 2)].abs());
             for piv in [d0, d1, d2] {
                 if !piv.is_finite() || piv <= 1e-14 * scale || scale == 0.0 {
                     return Err(SoftTissueError::NotPositiveDefinite {
