@@ -53,7 +53,7 @@ fn main() -> Result<()> {
         preconditioner: PreconditionerKind::Periodic { every: 1_000_000 },
         ..Default::default()
     };
-    let mut body = DeformableBody::new(mesh, Material::new(1000.0, 5e3, 0.45), settings)?;
+    let mut body = DeformableBody::new(mesh, TissueMaterial::new(1000.0, 5e3, 0.45), settings)?;
     body.fix_where(|p| p.z < -2.0e-3);
     body.step(0.02)?;
     println!(
@@ -75,8 +75,10 @@ fn main() -> Result<()> {
                 (ComplianceMode::Factorized, &mut cold),
             ] {
                 // A new solver has empty caches: every node column is solved.
+                // Reuse 0: W from the body's current factor (no snapshot copy).
                 let mut solver = ContactSolver::new(ContactSettings {
                     compliance: mode,
+                    factor_reuse: 0,
                     ..Default::default()
                 })?;
                 solver.set_contacts(&cs, &[&body], 0.02)?;

@@ -38,7 +38,7 @@ fn parse_kind(s: &str) -> Option<PreconditionerKind> {
 
 fn run(kind: PreconditionerKind, steps: usize) -> Result<()> {
     let mesh = generate::ellipsoid(LENS_RADII, 12)?;
-    let material = Material::new(1000.0, 5e3, 0.45).with_stiffness(StiffnessField::Radial {
+    let material = TissueMaterial::new(1000.0, 5e3, 0.45).with_stiffness(StiffnessField::Radial {
         center: Vec3::zeros(),
         radii: Vec3::from(LENS_RADII),
         core_radius: 0.55,

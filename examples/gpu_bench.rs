@@ -12,7 +12,7 @@ use std::time::Instant;
 use bevy::prelude::*;
 use bevy::render::RenderPlugin;
 use bevy::render::renderer::{RenderAdapterInfo, RenderDevice, RenderQueue};
-use bevy::render::settings::{RenderCreation, WgpuSettings};
+use bevy::render::settings::RenderCreation;
 use bevy::window::ExitCondition;
 use bevy_soft_tissue::contact::{ContactOther, ContactSide};
 use bevy_soft_tissue::gpu::GpuCompliance;
@@ -40,7 +40,7 @@ fn main() -> bevy_soft_tissue::error::Result<()> {
             ..Default::default()
         },
         RenderPlugin {
-            render_creation: RenderCreation::Automatic(Box::new(WgpuSettings::default())),
+            render_creation: RenderCreation::Automatic(Box::default()),
             synchronous_pipeline_compilation: true,
             ..Default::default()
         },
@@ -63,7 +63,7 @@ fn main() -> bevy_soft_tissue::error::Result<()> {
         preconditioner: PreconditionerKind::Periodic { every: 1_000_000 },
         ..Default::default()
     };
-    let mut body = DeformableBody::new(mesh, Material::new(1000.0, 5e3, 0.45), settings)?;
+    let mut body = DeformableBody::new(mesh, TissueMaterial::new(1000.0, 5e3, 0.45), settings)?;
     body.fix_where(|p| p.z < -2.0e-3);
     body.step(0.02)?;
     let mut verts: Vec<usize> = body.surface().vertices.clone();

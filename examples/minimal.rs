@@ -31,7 +31,7 @@ fn setup(mut commands: Commands) -> Result {
     )?;
     commands.spawn(SoftBody::new(
         mesh,
-        Material::new(1000.0, 30e3, 0.45).with_damping(2.0, 0.0),
+        TissueMaterial::new(1000.0, 30e3, 0.45).with_damping(2.0, 0.0),
     )?);
     commands.spawn((
         Tool::new(
@@ -50,7 +50,7 @@ fn report(
     diag: Res<SoftTissueDiagnostics>,
     mut exit: MessageWriter<AppExit>,
 ) {
-    if diag.steps > 0 && diag.steps % 30 == 0 {
+    if diag.steps > 0 && diag.steps.is_multiple_of(30) {
         for r in &plate {
             println!(
                 "step {:4}: {} contacts, force on plate {:.4} N",

@@ -34,7 +34,7 @@ use std::time::Instant;
 use crate::error::{Result, SoftTissueError, check_positive};
 use crate::fem::assembly::{BlockCsr, BlockPattern};
 use crate::fem::{Element, RotationMethod};
-use crate::material::Material;
+use crate::material::TissueMaterial;
 use crate::math::{Mat3, Vec3, polar_rotation_fast};
 use crate::mesh::{Surface, TetMesh};
 use crate::solver::cg::{self, CgReport, CgScratch, CgSettings};
@@ -118,7 +118,7 @@ pub struct DeformableBody {
     id: u64,
     mesh: TetMesh,
     surface: Surface,
-    material: Material,
+    material: TissueMaterial,
     young: Vec<f64>,
     elements: Vec<Element>,
     mass: Vec<f64>,
@@ -144,7 +144,7 @@ pub struct DeformableBody {
     report: StepReport,
 }
 
-fn build_elements(mesh: &TetMesh, material: &Material, young: &[f64]) -> Vec<Element> {
+fn build_elements(mesh: &TetMesh, material: &TissueMaterial, young: &[f64]) -> Vec<Element> {
     mesh.tets()
         .iter()
         .zip(young)
@@ -167,7 +167,7 @@ fn lumped_mass(mesh: &TetMesh, elements: &[Element], density: f64) -> Vec<f64> {
 
 impl DeformableBody {
     /// Creates a body at rest in its mesh's configuration.
-    pub fn new(mesh: TetMesh, material: Material, settings: BodySettings) -> Result<Self> {
+    pub fn new(mesh: TetMesh, material: TissueMaterial, settings: BodySettings) -> Result<Self> {
         validate_settings(&settings)?;
         let young = material.element_young(&mesh)?;
         let elements = build_elements(&mesh, &material, &young);
@@ -231,7 +231,7 @@ impl DeformableBody {
     }
 
     /// The material.
-    pub fn material(&self) -> &Material {
+    pub fn material(&self) -> &TissueMaterial {
         &self.material
     }
 
@@ -385,7 +385,7 @@ impl DeformableBody {
     }
 
     /// Replaces the material (for example a new stiffness field) keeping the state.
-    pub fn set_material(&mut self, material: Material) -> Result<()> {
+    pub fn set_material(&mut self, material: TissueMaterial) -> Result<()> {
         let young = material.element_young(&self.mesh)?;
         self.elements = build_elements(&self.mesh, &material, &young);
         self.mass = lumped_mass(&self.mesh, &self.elements, material.density);

@@ -27,7 +27,7 @@
 //!
 //! let mesh = generate::box_mesh(v3(0.0, 0.0, 0.0), v3(0.1, 0.02, 0.02), [10, 2, 2]).unwrap();
 //! let settings = BodySettings { gravity: Some(v3(0.0, 0.0, -9.81)), ..Default::default() };
-//! let mut body = DeformableBody::new(mesh, Material::new(1000.0, 1e5, 0.3), settings).unwrap();
+//! let mut body = DeformableBody::new(mesh, TissueMaterial::new(1000.0, 1e5, 0.3), settings).unwrap();
 //! body.fix_where(|p| p.x < 1e-9);
 //! for _ in 0..10 {
 //!     let report = body.step(0.01).unwrap();
@@ -35,6 +35,7 @@
 //! }
 //! ```
 
+#![warn(missing_docs)]
 #![allow(clippy::needless_range_loop)] // index loops mirror the math of the kernels
 
 pub mod body;
@@ -64,7 +65,7 @@ pub mod prelude {
     };
     pub use crate::error::SoftTissueError;
     pub use crate::fem::RotationMethod;
-    pub use crate::material::{Material, RayleighDamping, StiffnessField, Transition};
+    pub use crate::material::{RayleighDamping, StiffnessField, TissueMaterial, Transition};
     pub use crate::math::v3;
     pub use crate::mesh::{Surface, TetMesh, ValidateOptions, generate, io};
     pub use crate::plugin::{

@@ -1,6 +1,6 @@
 //! Materials: density, Poisson ratio, per-element Young's modulus and Rayleigh damping.
 //!
-//! A [`Material`] gives the base properties of a body; its
+//! A [`TissueMaterial`] gives the base properties of a body; its
 //! [`StiffnessField`] turns the base Young's modulus into one value per
 //! element:
 //!
@@ -69,9 +69,9 @@ pub enum StiffnessField {
     PerElement(Vec<f64>),
 }
 
-/// Material of a soft body.
+/// TissueMaterial of a soft body.
 #[derive(Debug, Clone, PartialEq)]
-pub struct Material {
+pub struct TissueMaterial {
     /// Mass density, kg/m³.
     pub density: f64,
     /// Poisson ratio, in (-1, 0.5).
@@ -84,7 +84,7 @@ pub struct Material {
     pub damping: RayleighDamping,
 }
 
-impl Default for Material {
+impl Default for TissueMaterial {
     fn default() -> Self {
         Self {
             density: 1000.0,
@@ -96,7 +96,7 @@ impl Default for Material {
     }
 }
 
-impl Material {
+impl TissueMaterial {
     /// A material with the given density, Young's modulus and Poisson ratio.
     pub fn new(density: f64, young: f64, poisson: f64) -> Self {
         Self {

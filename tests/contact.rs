@@ -7,7 +7,7 @@ use nalgebra::{DMatrix, Isometry3, Translation3, UnitQuaternion};
 
 fn lens(cells: usize, kind: PreconditionerKind) -> DeformableBody {
     let mesh = generate::ellipsoid(LENS_RADII, cells).unwrap();
-    let material = Material::new(1000.0, 5e3, 0.45)
+    let material = TissueMaterial::new(1000.0, 5e3, 0.45)
         .with_stiffness(StiffnessField::Radial {
             center: Vec3::zeros(),
             radii: Vec3::from(LENS_RADII),
@@ -275,7 +275,7 @@ fn block_slide(theta_deg: f64, mu: f64) -> f64 {
     };
     let body = DeformableBody::new(
         mesh,
-        Material::new(1000.0, 5e4, 0.3).with_damping(2.0, 0.0),
+        TissueMaterial::new(1000.0, 5e4, 0.3).with_damping(2.0, 0.0),
         settings,
     )
     .unwrap();
@@ -427,7 +427,7 @@ fn two_bodies_pressed_together() {
     let g = Some(v3(0.0, 0.0, -9.81));
     let mut a = DeformableBody::new(
         lower,
-        Material::new(1000.0, 2e4, 0.3),
+        TissueMaterial::new(1000.0, 2e4, 0.3),
         BodySettings {
             gravity: g,
             ..Default::default()
@@ -437,7 +437,7 @@ fn two_bodies_pressed_together() {
     a.fix_where(|p| p.z < -4e-3 + 1e-9);
     let mut b = DeformableBody::new(
         upper,
-        Material::new(1000.0, 2e4, 0.3),
+        TissueMaterial::new(1000.0, 2e4, 0.3),
         BodySettings {
             gravity: g,
             ..Default::default()
@@ -647,7 +647,7 @@ fn rest_precomputed_refuses_large_meshes() {
     );
     let body = DeformableBody::new(
         mesh,
-        Material::new(1000.0, 1e4, 0.3),
+        TissueMaterial::new(1000.0, 1e4, 0.3),
         BodySettings::default(),
     )
     .unwrap();

@@ -109,8 +109,12 @@ fn gpu_w_matches_cpu_w_on_lens_with_90_friction_contacts() {
         preconditioner: PreconditionerKind::Periodic { every: 1000 },
         ..Default::default()
     };
-    let mut body =
-        DeformableBody::new(mesh.clone(), Material::new(1000.0, 5e3, 0.45), settings).unwrap();
+    let mut body = DeformableBody::new(
+        mesh.clone(),
+        TissueMaterial::new(1000.0, 5e3, 0.45),
+        settings,
+    )
+    .unwrap();
     body.step(0.02).unwrap();
     let rot = nalgebra::Rotation3::from_euler_angles(0.3, -0.2, 0.5);
     let x: Vec<DVec3> = mesh.positions().iter().map(|p| rot * p).collect();

@@ -7,7 +7,7 @@ use bevy::diagnostic::DiagnosticsStore;
 use bevy::prelude::*;
 use bevy::time::TimeUpdateStrategy;
 use bevy_soft_tissue::contact::ToolShape;
-use bevy_soft_tissue::material::Material;
+use bevy_soft_tissue::material::TissueMaterial;
 use bevy_soft_tissue::mesh::generate;
 use bevy_soft_tissue::plugin::{
     SoftBody, SoftTissueConfig, SoftTissueDiagnostics, Tool, ToolReaction,
@@ -46,7 +46,11 @@ fn cube(size: f64, cells: usize, z0: f64) -> SoftBody {
         [cells; 3],
     )
     .unwrap();
-    SoftBody::new(mesh, Material::new(1000.0, 3e4, 0.3).with_damping(2.0, 0.0)).unwrap()
+    SoftBody::new(
+        mesh,
+        TissueMaterial::new(1000.0, 3e4, 0.3).with_damping(2.0, 0.0),
+    )
+    .unwrap()
 }
 
 #[test]
@@ -144,7 +148,7 @@ fn changing_the_material_at_runtime() {
             .spawn((
                 SoftBody::new(
                     mesh.clone(),
-                    Material::new(1000.0, 1e6, 0.3).with_damping(5.0, 0.0),
+                    TissueMaterial::new(1000.0, 1e6, 0.3).with_damping(5.0, 0.0),
                 )
                 .unwrap(),
                 bevy_soft_tissue::plugin::FixedNodes(
@@ -158,7 +162,7 @@ fn changing_the_material_at_runtime() {
         app.world_mut()
             .get_mut::<SoftBody>(e)
             .unwrap()
-            .set_material(Material::new(1000.0, young, 0.3).with_damping(5.0, 0.0))
+            .set_material(TissueMaterial::new(1000.0, young, 0.3).with_damping(5.0, 0.0))
             .unwrap();
         steps(&mut app, 150);
         let b = app.world().get::<SoftBody>(e).unwrap();
@@ -181,7 +185,7 @@ fn absent_effects_cost_nothing() {
     });
     let mesh = generate::box_mesh(v3(0.0, 0.0, 0.0), v3(0.01, 0.01, 0.01), [2, 2, 2]).unwrap();
     app.world_mut()
-        .spawn(SoftBody::new(mesh, Material::new(1000.0, 1e4, 0.3)).unwrap());
+        .spawn(SoftBody::new(mesh, TissueMaterial::new(1000.0, 1e4, 0.3)).unwrap());
     steps(&mut app, 10);
     let d = app.world().resource::<SoftTissueDiagnostics>().clone();
     assert_eq!(

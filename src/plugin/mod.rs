@@ -57,7 +57,7 @@ pub use diagnostics::{
 use crate::body::{BodySettings, DeformableBody};
 use crate::contact::{ComplianceMode, ContactSettings, ContactSolver, RigidTool, ToolShape};
 use crate::error::Result;
-use crate::material::Material;
+use crate::material::TissueMaterial;
 use crate::math::Vec3 as DVec3;
 use crate::mesh::TetMesh;
 use crate::solver::PreconditionerKind;
@@ -152,7 +152,7 @@ pub struct SoftBody(pub DeformableBody);
 
 impl SoftBody {
     /// A body with default solver settings.
-    pub fn new(mesh: TetMesh, material: Material) -> Result<Self> {
+    pub fn new(mesh: TetMesh, material: TissueMaterial) -> Result<Self> {
         Ok(Self(DeformableBody::new(
             mesh,
             material,
@@ -163,7 +163,7 @@ impl SoftBody {
     /// A body with explicit solver settings.
     pub fn with_settings(
         mesh: TetMesh,
-        material: Material,
+        material: TissueMaterial,
         settings: BodySettings,
     ) -> Result<Self> {
         Ok(Self(DeformableBody::new(mesh, material, settings)?))

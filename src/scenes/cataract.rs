@@ -20,7 +20,7 @@ use nalgebra::{Isometry3, Translation3, UnitQuaternion};
 use crate::body::{BodySettings, DeformableBody};
 use crate::contact::{ContactSettings, Pose, RigidTool, ToolShape};
 use crate::error::Result;
-use crate::material::{Material, StiffnessField, Transition};
+use crate::material::{StiffnessField, TissueMaterial, Transition};
 use crate::math::{Vec3, v3};
 use crate::mesh::generate::{self, EyeShell, Incision, LENS_RADII};
 
@@ -98,8 +98,8 @@ pub fn lens_center(p: &CataractParams) -> Vec3 {
 
 /// Lens and eye materials. The lens material is for the lens mesh in its own
 /// (unrotated, centred) frame; [`build`] turns it into per-element values.
-pub fn materials(p: &CataractParams) -> (Material, Material) {
-    let lens = Material::new(1050.0, p.lens_young, 0.45)
+pub fn materials(p: &CataractParams) -> (TissueMaterial, TissueMaterial) {
+    let lens = TissueMaterial::new(1050.0, p.lens_young, 0.45)
         .with_stiffness(StiffnessField::Radial {
             center: Vec3::zeros(),
             radii: Vec3::from(LENS_RADII),
@@ -108,7 +108,7 @@ pub fn materials(p: &CataractParams) -> (Material, Material) {
             transition: Transition::Smooth { width: 0.2 },
         })
         .with_damping(2.0, 0.005);
-    let eye = Material::new(1050.0, p.eye_young, 0.45).with_damping(2.0, 0.005);
+    let eye = TissueMaterial::new(1050.0, p.eye_young, 0.45).with_damping(2.0, 0.005);
     (lens, eye)
 }
 
