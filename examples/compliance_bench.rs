@@ -7,40 +7,10 @@
 //! cargo run --release --example compliance_bench
 //! ```
 
-use bevy_soft_tissue::contact::{ContactOther, ContactSide};
 use bevy_soft_tissue::core_prelude::*;
 use bevy_soft_tissue::mesh::generate::LENS_RADII;
+use bevy_soft_tissue::scenes::bench::pole_contacts;
 use std::time::Instant;
-
-fn contacts(body: &DeformableBody, n: usize) -> Vec<Contact> {
-    // The n surface vertices nearest to the top pole, pushed down by a rigid tool.
-    let mut verts: Vec<usize> = body.surface().vertices.clone();
-    let pole = v3(0.0, 0.0, LENS_RADII[2]);
-    verts.sort_by(|&a, &b| {
-        (body.positions()[a] - pole)
-            .norm()
-            .total_cmp(&(body.positions()[b] - pole).norm())
-    });
-    verts
-        .iter()
-        .take(n)
-        .map(|&v| Contact {
-            a: ContactSide {
-                body: 0,
-                nodes: [v as u32, 0, 0],
-                weights: [1.0, 0.0, 0.0],
-            },
-            other: ContactOther::Tool(0),
-            normal: v3(0.0, 0.0, -1.0),
-            tangents: [v3(1.0, 0.0, 0.0), v3(0.0, 1.0, 0.0)],
-            gap: -1e-5,
-            slip: [0.0, 0.0],
-            mu: 0.3,
-            point: body.positions()[v],
-            force: Vec3::zeros(),
-        })
-        .collect()
-}
 
 fn median(mut v: Vec<f64>) -> f64 {
     v.sort_by(f64::total_cmp);
@@ -65,7 +35,7 @@ fn main() -> Result<()> {
         "contacts", "rows", "DenseRows", "Factorized cold", "Factorized warm", "speed-up"
     );
     for n in [30, 60, 90, 130, 260] {
-        let cs = contacts(&body, n);
+        let cs = pole_contacts(&body, n, v3(0.0, 0.0, -1.0), 0.3);
         let mut dense = Vec::new();
         let mut cold = Vec::new();
         let mut warm = Vec::new();

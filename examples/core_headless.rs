@@ -38,13 +38,7 @@ fn parse_kind(s: &str) -> Option<PreconditionerKind> {
 
 fn run(kind: PreconditionerKind, steps: usize) -> Result<()> {
     let mesh = generate::ellipsoid(LENS_RADII, 12)?;
-    let material = TissueMaterial::new(1000.0, 5e3, 0.45).with_stiffness(StiffnessField::Radial {
-        center: Vec3::zeros(),
-        radii: Vec3::from(LENS_RADII),
-        core_radius: 0.55,
-        factor: 5.0,
-        transition: Transition::Smooth { width: 0.2 },
-    });
+    let material = bevy_soft_tissue::scenes::bench::lens_material();
     let settings = BodySettings {
         preconditioner: kind,
         cg: CgSettings {

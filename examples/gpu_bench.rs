@@ -14,12 +14,11 @@ use bevy::render::RenderPlugin;
 use bevy::render::renderer::{RenderAdapterInfo, RenderDevice, RenderQueue};
 use bevy::render::settings::RenderCreation;
 use bevy::window::ExitCondition;
-use bevy_soft_tissue::contact::{ContactOther, ContactSide};
 use bevy_soft_tissue::gpu::GpuCompliance;
-use bevy_soft_tissue::math::Vec3 as DVec3;
 use bevy_soft_tissue::mesh::generate::LENS_RADII;
 use bevy_soft_tissue::plugin::GpuMode;
 use bevy_soft_tissue::prelude::*;
+use bevy_soft_tissue::scenes::bench::pole_contacts;
 
 fn median(mut v: Vec<f64>) -> f64 {
     v.sort_by(f64::total_cmp);
@@ -66,38 +65,13 @@ fn main() -> bevy_soft_tissue::error::Result<()> {
     let mut body = DeformableBody::new(mesh, TissueMaterial::new(1000.0, 5e3, 0.45), settings)?;
     body.fix_where(|p| p.z < -2.0e-3);
     body.step(0.02)?;
-    let mut verts: Vec<usize> = body.surface().vertices.clone();
-    let pole = v3(0.0, 0.0, LENS_RADII[2]);
-    verts.sort_by(|&a, &b| {
-        (body.positions()[a] - pole)
-            .norm()
-            .total_cmp(&(body.positions()[b] - pole).norm())
-    });
     println!("compliance build time (ms, median of 5), friction on");
     println!(
         "{:>8} {:>14} {:>10} {:>10}",
         "contacts", "CPU Factorized", "GPU", "GPU/CPU"
     );
     for n in [30, 60, 90, 130, 260] {
-        let cs: Vec<Contact> = verts
-            .iter()
-            .take(n)
-            .map(|&v| Contact {
-                a: ContactSide {
-                    body: 0,
-                    nodes: [v as u32, 0, 0],
-                    weights: [1.0, 0.0, 0.0],
-                },
-                other: ContactOther::Tool(0),
-                normal: v3(0.0, 0.0, -1.0),
-                tangents: [v3(1.0, 0.0, 0.0), v3(0.0, 1.0, 0.0)],
-                gap: -1e-5,
-                slip: [0.0, 0.0],
-                mu: 0.3,
-                point: body.positions()[v],
-                force: DVec3::zeros(),
-            })
-            .collect();
+        let cs = pole_contacts(&body, n, v3(0.0, 0.0, -1.0), 0.3);
         let (mut cpu_t, mut gpu_t) = (Vec::new(), Vec::new());
         for _ in 0..5 {
             let mut s = ContactSolver::new(ContactSettings::default())?;

@@ -12,12 +12,12 @@ use bevy::render::RenderPlugin;
 use bevy::render::renderer::{RenderDevice, RenderQueue};
 use bevy::render::settings::{Backends, RenderCreation, WgpuSettings};
 use bevy::window::ExitCondition;
-use bevy_soft_tissue::contact::{ContactOther, ContactSide};
 use bevy_soft_tissue::gpu::GpuCompliance;
 use bevy_soft_tissue::math::Vec3 as DVec3;
 use bevy_soft_tissue::mesh::generate::LENS_RADII;
 use bevy_soft_tissue::plugin::GpuMode;
 use bevy_soft_tissue::prelude::*;
+use bevy_soft_tissue::scenes::bench::pole_contacts;
 use bevy_soft_tissue::scenes::{CataractScenePlugin, cataract::CataractParams};
 
 fn vulkan_available() -> bool {
@@ -67,35 +67,6 @@ fn render_app(extra: impl FnOnce(&mut App)) -> Option<App> {
     Some(app)
 }
 
-fn lens_contacts(body: &DeformableBody, n: usize) -> Vec<Contact> {
-    let mut verts: Vec<usize> = body.surface().vertices.clone();
-    let pole = v3(0.0, 0.0, LENS_RADII[2]);
-    verts.sort_by(|&a, &b| {
-        (body.positions()[a] - pole)
-            .norm()
-            .total_cmp(&(body.positions()[b] - pole).norm())
-    });
-    verts
-        .iter()
-        .take(n)
-        .map(|&v| Contact {
-            a: ContactSide {
-                body: 0,
-                nodes: [v as u32, 0, 0],
-                weights: [1.0, 0.0, 0.0],
-            },
-            other: ContactOther::Tool(0),
-            normal: v3(0.0, 0.3, -1.0).normalize(),
-            tangents: [v3(1.0, 0.0, 0.0), v3(0.0, 1.0, 0.3).normalize()],
-            gap: -1e-5,
-            slip: [0.0, 0.0],
-            mu: 0.3,
-            point: body.positions()[v],
-            force: DVec3::zeros(),
-        })
-        .collect()
-}
-
 #[test]
 fn gpu_w_matches_cpu_w_on_lens_with_90_friction_contacts() {
     let Some(app) = render_app(|_| {}) else {
@@ -121,7 +92,7 @@ fn gpu_w_matches_cpu_w_on_lens_with_90_friction_contacts() {
     body.set_state(&x, &vec![DVec3::zeros(); x.len()]).unwrap();
     body.step(0.02).unwrap();
     assert!(body.preconditioner().factor_state().unwrap().warped);
-    let contacts = lens_contacts(&body, 90);
+    let contacts = pole_contacts(&body, 90, v3(0.0, 0.3, -1.0), 0.3);
 
     let mut cpu = ContactSolver::new(ContactSettings::default()).unwrap();
     cpu.set_contacts(&contacts, &[&body], 0.02).unwrap();

@@ -221,7 +221,8 @@ pub struct ContactSolver {
     pass: usize,
 }
 
-fn tangents(n: &Vec3) -> [Vec3; 2] {
+/// Two unit tangents completing the unit normal `n` to an orthonormal frame.
+pub fn tangent_basis(n: &Vec3) -> [Vec3; 2] {
     let e = if n.x.abs() < 0.6 {
         Vec3::x()
     } else if n.y.abs() < 0.6 {
@@ -349,7 +350,7 @@ impl ContactSolver {
                     if prox.distance >= margin {
                         continue;
                     }
-                    let t = tangents(&prox.normal);
+                    let t = tangent_basis(&prox.normal);
                     let rel = (p - x0[v]) - tool.displacement_at(&prox.point);
                     self.contacts.push(Contact {
                         a: ContactSide {
@@ -442,7 +443,7 @@ impl ContactSolver {
             if gap < 0.0 && !inside_tet(&p, bodies[b], bodies[b].surface().triangle_tets[t]) {
                 continue;
             }
-            let tg = tangents(&n);
+            let tg = tangent_basis(&n);
             let qs = sb[i] * w[0] + sb[j] * w[1] + sb[k] * w[2];
             let rel = (p - sa[v]) - (q - qs);
             self.contacts.push(Contact {

@@ -1,6 +1,7 @@
 //! Ready-made scenes: the cataract (MSICS) extraction, as core data
 //! ([`cataract`]) and as Bevy entities ([`CataractScenePlugin`], [`run_headless`]).
 
+pub mod bench;
 pub mod cataract;
 
 use std::time::Duration;
