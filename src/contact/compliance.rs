@@ -32,7 +32,7 @@
 //!   row of `J`. Same `W` as `Factorized`; kept as the benchmark baseline.
 //! - `Diagonal`: uncoupled, `W` from the 3×3 diagonal blocks of `A` only.
 //! - `RestPrecomputed`: the dense inverse of the first `A` (at rest),
-//!   rotated by the node rotations (the paper's reference [11]). Refused above
+//!   rotated by the node rotations (the paper's reference \[11\]). Refused above
 //!   [`REST_PRECOMPUTED_MAX_NODES`] nodes.
 
 use std::collections::HashMap;
