@@ -299,3 +299,45 @@ fn cataract_scene_runs_headless() {
         "lens moved only {moved} m toward the incision"
     );
 }
+
+#[test]
+fn timestep_changes_reach_the_fixed_clock() {
+    let mut app = app(SoftTissueConfig {
+        timestep: H,
+        ..Default::default()
+    });
+    app.update();
+    assert!(
+        (app.world()
+            .resource::<Time<Fixed>>()
+            .timestep()
+            .as_secs_f64()
+            - H)
+            .abs()
+            < 1e-9
+    );
+    app.world_mut().resource_mut::<SoftTissueConfig>().timestep = 0.004;
+    app.update();
+    assert!(
+        (app.world()
+            .resource::<Time<Fixed>>()
+            .timestep()
+            .as_secs_f64()
+            - 0.004)
+            .abs()
+            < 1e-9
+    );
+    // An impossible step size is rejected with an error count, not a panic.
+    app.world_mut().resource_mut::<SoftTissueConfig>().timestep = -1.0;
+    app.update();
+    assert!(app.world().resource::<SoftTissueDiagnostics>().errors > 0);
+    assert!(
+        (app.world()
+            .resource::<Time<Fixed>>()
+            .timestep()
+            .as_secs_f64()
+            - 0.004)
+            .abs()
+            < 1e-9
+    );
+}

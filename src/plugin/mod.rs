@@ -288,7 +288,32 @@ impl Plugin for SoftTissuePlugin {
         if let Some(mut time) = app.world_mut().get_resource_mut::<Time<Fixed>>() {
             time.set_timestep_seconds(self.config.timestep);
         }
+        app.add_systems(First, sync_timestep);
         app.add_plugins(SoftTissuePlugins { schedule });
+    }
+}
+
+/// Keeps `Time<Fixed>` at [`SoftTissueConfig::timestep`] when the config changes.
+fn sync_timestep(
+    config: Res<SoftTissueConfig>,
+    time: Option<ResMut<Time<Fixed>>>,
+    mut diag: ResMut<SoftTissueDiagnostics>,
+) {
+    if !config.is_changed() {
+        return;
+    }
+    if !(config.timestep.is_finite() && config.timestep > 0.0) {
+        diag.errors += 1;
+        warn!(
+            "SoftTissueConfig::timestep = {} is not a positive time step",
+            config.timestep
+        );
+        return;
+    }
+    if let Some(mut time) = time
+        && (time.timestep().as_secs_f64() - config.timestep).abs() > 1e-12
+    {
+        time.set_timestep_seconds(config.timestep);
     }
 }
 

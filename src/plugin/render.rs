@@ -313,6 +313,19 @@ fn update_body_meshes(
     }
 }
 
+/// Despawns core meshes whose body is gone.
+fn drop_orphan_cores(
+    mut commands: Commands,
+    cores: Query<(Entity, &CoreMesh)>,
+    bodies: Query<(), With<SoftBody>>,
+) {
+    for (e, core) in &cores {
+        if bodies.get(core.body).is_err() {
+            commands.entity(e).despawn();
+        }
+    }
+}
+
 /// A render mesh for a tool shape, in the tool's local frame.
 pub fn tool_mesh(shape: &ToolShape) -> Mesh {
     match shape {

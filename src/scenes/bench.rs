@@ -35,14 +35,12 @@ pub fn lens_body(kind: PreconditionerKind, cells: usize) -> Result<DeformableBod
 /// body's highest point, with the given normal and friction.
 pub fn pole_contacts(body: &DeformableBody, n: usize, normal: Vec3, mu: f64) -> Vec<Contact> {
     let x = body.positions();
-    let top = body
-        .surface()
-        .vertices
-        .iter()
-        .map(|&v| x[v])
-        .fold(v3(0.0, 0.0, f64::NEG_INFINITY), |a, p| {
+    let top = body.surface().vertices.iter().map(|&v| x[v]).fold(
+        v3(0.0, 0.0, f64::NEG_INFINITY),
+        |a, p| {
             if p.z > a.z { p } else { a }
-        });
+        },
+    );
     let mut verts: Vec<usize> = body.surface().vertices.clone();
     verts.sort_by(|&a, &b| (x[a] - top).norm().total_cmp(&(x[b] - top).norm()));
     let normal = normal.normalize();
