@@ -103,7 +103,7 @@ impl Plugin for RenderSyncPlugin {
             resource_exists::<Assets<Mesh>>.and_then(resource_exists::<Assets<StandardMaterial>>);
         app.add_systems(
             Update,
-            (attach_body_meshes, attach_tool_meshes).run_if(rendering),
+            (attach_body_meshes, attach_tool_meshes, drop_orphan_cores).run_if(rendering),
         )
         .add_systems(
             self.schedule,
