@@ -7,7 +7,9 @@
 //!
 //! Options: `--headless`, `--steps N` (headless, default 480), `--coarse`
 //! (light meshes), `--preconditioner jacobi|exact|periodicN|async`,
-//! `--compliance factorized|exact|diagonal|rest|dense`.
+//! `--compliance factorized|exact|diagonal|rest|dense`, `--reuse N` (steps a
+//! factor serves the compliance, `ContactSettings::factor_reuse`), `--passes N`
+//! (contact passes per step) — accuracy against time.
 //!
 //! Headless, it prints the median time per phase, the steps per second, the
 //! contact counts and CG iterations, and exits nonzero on NaN, on a pipeline
@@ -33,6 +35,8 @@ struct Args {
     coarse: bool,
     preconditioner: PreconditionerKind,
     compliance: ComplianceMode,
+    reuse: Option<u64>,
+    passes: Option<usize>,
 }
 
 fn parse() -> Result<Args, String> {
@@ -42,6 +46,8 @@ fn parse() -> Result<Args, String> {
         coarse: false,
         preconditioner: PreconditionerKind::Async,
         compliance: ComplianceMode::Factorized,
+        reuse: None,
+        passes: None,
     };
     let args: Vec<String> = std::env::args().skip(1).collect();
     let mut i = 0;
@@ -73,6 +79,22 @@ fn parse() -> Result<Args, String> {
                     },
                     _ => return Err(format!("unknown preconditioner `{v}`")),
                 };
+                i += 1;
+            }
+            "--reuse" => {
+                a.reuse = Some(
+                    value()?
+                        .parse()
+                        .map_err(|_| "--reuse needs a number of steps".to_string())?,
+                );
+                i += 1;
+            }
+            "--passes" => {
+                a.passes = Some(
+                    value()?
+                        .parse()
+                        .map_err(|_| "--passes needs a number".to_string())?,
+                );
                 i += 1;
             }
             "--compliance" => {
@@ -160,12 +182,18 @@ fn main() -> ExitCode {
     } else {
         CataractParams::default()
     };
-    let config = SoftTissueConfig {
+    let mut config = SoftTissueConfig {
         timestep: 1.0 / 60.0,
         preconditioner: args.preconditioner,
         compliance: args.compliance,
         ..Default::default()
     };
+    if let Some(r) = args.reuse {
+        config.contact.factor_reuse = r;
+    }
+    if let Some(p) = args.passes {
+        config.contact.max_passes = p.max(1);
+    }
     let has_display =
         std::env::var_os("DISPLAY").is_some() || std::env::var_os("WAYLAND_DISPLAY").is_some();
     if args.headless || !has_display || !cfg!(feature = "viewer") {

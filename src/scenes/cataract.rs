@@ -218,6 +218,20 @@ impl ExtractionPath {
     }
 }
 
+/// Contact settings of the scene: a 0.1 mm alarm distance (a wider band adds
+/// many inactive contacts and slows `W` more than it helps) and a frictionless
+/// lens–sclera interface (viscoelastic-lubricated); the vectis has its own μ.
+/// Up to four contact passes: the curved blade's linearized contacts sometimes
+/// need a third correction.
+pub fn contact_settings() -> ContactSettings {
+    ContactSettings {
+        alarm_distance: 0.1e-3,
+        body_friction: 0.0,
+        max_passes: 4,
+        ..Default::default()
+    }
+}
+
 /// The two bodies, the vectis and the extraction path.
 #[derive(Debug)]
 pub struct CataractScene {
@@ -248,11 +262,7 @@ pub fn build(p: &CataractParams, settings: BodySettings) -> Result<CataractScene
     let path = ExtractionPath::new(p);
     let vectis =
         RigidTool::new(vectis_shape(), path.pose(0.0))?.with_friction(p.vectis_friction)?;
-    let contact = ContactSettings {
-        alarm_distance: 0.4e-3,
-        body_friction: 0.1,
-        ..Default::default()
-    };
+    let contact = contact_settings();
     Ok(CataractScene {
         lens,
         eye,

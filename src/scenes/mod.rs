@@ -33,6 +33,8 @@ pub struct Vectis {
 }
 
 /// Spawns the cataract scene and drives the vectis along its path in `FixedUpdate`.
+/// Add it after `SoftTissuePlugin`: it sets the scene's alarm distance and
+/// lens–sclera friction in [`SoftTissueConfig::contact`].
 #[derive(Debug, Clone, Default)]
 pub struct CataractScenePlugin {
     /// Scene parameters.
@@ -41,6 +43,13 @@ pub struct CataractScenePlugin {
 
 impl Plugin for CataractScenePlugin {
     fn build(&self, app: &mut App) {
+        // The scene's scale-dependent contact settings (other settings are kept).
+        if let Some(mut config) = app.world_mut().get_resource_mut::<SoftTissueConfig>() {
+            let scene = cataract::contact_settings();
+            config.contact.alarm_distance = scene.alarm_distance;
+            config.contact.body_friction = scene.body_friction;
+            config.contact.max_passes = config.contact.max_passes.max(scene.max_passes);
+        }
         let params = self.params.clone();
         app.add_systems(
             Startup,

@@ -22,7 +22,8 @@
 //! idle, the current matrix and node rotations are copied into recycled
 //! buffers and handed over. Buffers circulate between the two threads, so the
 //! steady state allocates nothing. Dropping the factorizer stops and joins the
-//! worker.
+//! worker. Across all bodies at most `cores − 1` factorizations run at once, so
+//! the stepping thread keeps a core of its own.
 
 pub mod cg;
 pub mod ldlt;
@@ -107,6 +108,18 @@ struct Done {
     seconds: f64,
 }
 
+/// Factorizations running in background workers, all bodies together.
+static IN_FLIGHT: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
+
+/// How many background factorizations may run at once: one core is left to the
+/// stepping thread (at least one worker).
+fn max_in_flight() -> usize {
+    std::thread::available_parallelism()
+        .map(|n| n.get().saturating_sub(1))
+        .unwrap_or(1)
+        .max(1)
+}
+
 /// Background `LDLᵀ` worker (see the module docs).
 pub struct AsyncFactorizer {
     tx: Option<Sender<Job>>,
@@ -146,6 +159,7 @@ impl AsyncFactorizer {
                     let t0 = Instant::now();
                     mat.values = std::mem::take(&mut job.values);
                     let result = sym.factorize(&mat, &mut job.factor, &mut work);
+                    IN_FLIGHT.fetch_sub(1, Ordering::SeqCst);
                     let done = Done {
                         values: std::mem::take(&mut mat.values),
                         rotations: job.rotations,
@@ -212,6 +226,17 @@ impl AsyncFactorizer {
         if self.in_flight {
             return;
         }
+        // Share the machine: with several bodies, at most `cores − 1` factorizations run
+        // at once; the others hand over their matrix a step later.
+        let limit = max_in_flight();
+        if IN_FLIGHT
+            .fetch_update(Ordering::SeqCst, Ordering::SeqCst, |n| {
+                (n < limit).then_some(n + 1)
+            })
+            .is_err()
+        {
+            return;
+        }
         let (Some(tx), Some((mut values, mut rots, factor))) = (&self.tx, self.spare.take()) else {
             return;
         };
@@ -225,6 +250,8 @@ impl AsyncFactorizer {
         };
         if tx.send(job).is_ok() {
             self.in_flight = true;
+        } else {
+            IN_FLIGHT.fetch_sub(1, Ordering::SeqCst);
         }
     }
 }
