@@ -10,10 +10,7 @@
 use std::time::Instant;
 
 use bevy::prelude::*;
-use bevy::render::RenderPlugin;
 use bevy::render::renderer::{RenderAdapterInfo, RenderDevice, RenderQueue};
-use bevy::render::settings::RenderCreation;
-use bevy::window::ExitCondition;
 use bevy_soft_tissue::gpu::GpuCompliance;
 use bevy_soft_tissue::mesh::generate::LENS_RADII;
 use bevy_soft_tissue::plugin::GpuMode;
@@ -27,23 +24,7 @@ fn median(mut v: Vec<f64>) -> f64 {
 
 fn main() -> bevy_soft_tissue::error::Result<()> {
     let mut app = App::new();
-    app.add_plugins((
-        MinimalPlugins,
-        AssetPlugin::default(),
-        bevy::image::ImagePlugin::default(),
-        bevy::mesh::MeshPlugin,
-        bevy::camera::CameraPlugin,
-        bevy::window::WindowPlugin {
-            primary_window: None,
-            exit_condition: ExitCondition::DontExit,
-            ..Default::default()
-        },
-        RenderPlugin {
-            render_creation: RenderCreation::Automatic(Box::default()),
-            synchronous_pipeline_compilation: true,
-            ..Default::default()
-        },
-    ));
+    bevy_soft_tissue::gpu::add_headless_render(&mut app, None);
     app.finish();
     app.cleanup();
     let (Some(device), Some(queue)) = (

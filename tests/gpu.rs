@@ -8,10 +8,7 @@
 use std::time::Duration;
 
 use bevy::prelude::*;
-use bevy::render::RenderPlugin;
 use bevy::render::renderer::{RenderDevice, RenderQueue};
-use bevy::render::settings::{Backends, RenderCreation, WgpuSettings};
-use bevy::window::ExitCondition;
 use bevy_soft_tissue::gpu::GpuCompliance;
 use bevy_soft_tissue::math::Vec3 as DVec3;
 use bevy_soft_tissue::mesh::generate::LENS_RADII;
@@ -40,27 +37,8 @@ fn render_app(extra: impl FnOnce(&mut App)) -> Option<App> {
         return None;
     }
     let mut app = App::new();
-    app.add_plugins((
-        MinimalPlugins,
-        bevy::log::LogPlugin::default(),
-        AssetPlugin::default(),
-        bevy::image::ImagePlugin::default(),
-        bevy::mesh::MeshPlugin,
-        bevy::camera::CameraPlugin,
-        bevy::window::WindowPlugin {
-            primary_window: None,
-            exit_condition: ExitCondition::DontExit,
-            ..Default::default()
-        },
-        RenderPlugin {
-            render_creation: RenderCreation::Automatic(Box::new(WgpuSettings {
-                backends: Some(Backends::VULKAN),
-                ..Default::default()
-            })),
-            synchronous_pipeline_compilation: true,
-            ..Default::default()
-        },
-    ));
+    app.add_plugins(bevy::log::LogPlugin::default());
+    bevy_soft_tissue::gpu::add_headless_render(&mut app, Some(wgpu::Backends::VULKAN));
     extra(&mut app);
     app.finish();
     app.cleanup();

@@ -33,6 +33,34 @@ use crate::solver::ldlt::{LdltFactor, NONE};
 
 pub use crate::plugin::GpuMode;
 
+/// Adds the plugins of a windowless app with a render device (no window, no
+/// camera rendering): enough for `Res<RenderDevice>` / `Res<RenderQueue>` in
+/// main-world systems. `backends` restricts the wgpu backends (`None`: automatic).
+/// Call `app.finish()` and `app.cleanup()` after adding the rest of the app.
+pub fn add_headless_render(app: &mut bevy::app::App, backends: Option<wgpu::Backends>) {
+    use bevy::render::settings::{RenderCreation, WgpuSettings};
+    app.add_plugins((
+        bevy::MinimalPlugins,
+        bevy::asset::AssetPlugin::default(),
+        bevy::image::ImagePlugin::default(),
+        bevy::mesh::MeshPlugin,
+        bevy::camera::CameraPlugin,
+        bevy::window::WindowPlugin {
+            primary_window: None,
+            exit_condition: bevy::window::ExitCondition::DontExit,
+            ..Default::default()
+        },
+        bevy::render::RenderPlugin {
+            render_creation: RenderCreation::Automatic(Box::new(WgpuSettings {
+                backends,
+                ..Default::default()
+            })),
+            synchronous_pipeline_compilation: true,
+            ..Default::default()
+        },
+    ));
+}
+
 /// WGSL source of the compliance kernels.
 pub const SHADER: &str = include_str!("../../shaders/compliance.wgsl");
 
