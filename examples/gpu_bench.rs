@@ -55,12 +55,18 @@ fn main() -> bevy_soft_tissue::error::Result<()> {
         let cs = pole_contacts(&body, n, v3(0.0, 0.0, -1.0), 0.3);
         let (mut cpu_t, mut gpu_t) = (Vec::new(), Vec::new());
         for _ in 0..5 {
-            let mut s = ContactSolver::new(ContactSettings::default())?;
+            let mut s = ContactSolver::new(ContactSettings {
+                factor_reuse: 0,
+                ..Default::default()
+            })?;
             s.set_contacts(&cs, &[&body], 0.02)?;
             let t0 = Instant::now();
             s.build_compliance(&[&body])?;
             cpu_t.push(t0.elapsed().as_secs_f64() * 1e3);
-            let mut s = ContactSolver::new(ContactSettings::default())?;
+            let mut s = ContactSolver::new(ContactSettings {
+                factor_reuse: 0,
+                ..Default::default()
+            })?;
             s.set_contacts(&cs, &[&body], 0.02)?;
             let t0 = Instant::now();
             s.build_compliance_with(&[&body], Some(&mut gpu))?;

@@ -39,6 +39,10 @@ pub use crate::plugin::GpuMode;
 /// Call `app.finish()` and `app.cleanup()` after adding the rest of the app.
 pub fn add_headless_render(app: &mut bevy::app::App, backends: Option<wgpu::Backends>) {
     use bevy::render::settings::{RenderCreation, WgpuSettings};
+    let mut settings = WgpuSettings::default();
+    if backends.is_some() {
+        settings.backends = backends;
+    }
     app.add_plugins((
         bevy::MinimalPlugins,
         bevy::asset::AssetPlugin::default(),
@@ -51,10 +55,7 @@ pub fn add_headless_render(app: &mut bevy::app::App, backends: Option<wgpu::Back
             ..Default::default()
         },
         bevy::render::RenderPlugin {
-            render_creation: RenderCreation::Automatic(Box::new(WgpuSettings {
-                backends,
-                ..Default::default()
-            })),
+            render_creation: RenderCreation::Automatic(Box::new(settings)),
             synchronous_pipeline_compilation: true,
             ..Default::default()
         },
