@@ -204,13 +204,7 @@ fn exact_ldlt_converges_in_at_most_two_iterations() {
 }
 
 fn lens_material() -> TissueMaterial {
-    TissueMaterial::new(1000.0, 5e3, 0.45).with_stiffness(StiffnessField::Radial {
-        center: Vec3::zeros(),
-        radii: Vec3::from(LENS_RADII),
-        core_radius: 0.55,
-        factor: 5.0,
-        transition: Transition::Smooth { width: 0.2 },
-    })
+    bevy_soft_tissue::scenes::bench::lens_material()
 }
 
 /// Squeezes and twists the paper-size lens through large deformation by driving

@@ -282,34 +282,29 @@ fn update_body_meshes(
             .iter()
             .map(|&v| body.positions()[v].map(|c| c as f32).into())
             .collect();
-        let n = normals(&pos, &core.triangles);
-        if let Some(VertexAttributeValues::Float32x3(p)) =
-            mesh.attribute_mut(Mesh::ATTRIBUTE_POSITION)
-        {
-            p.copy_from_slice(&pos);
-        }
-        if let Some(VertexAttributeValues::Float32x3(nn)) =
-            mesh.attribute_mut(Mesh::ATTRIBUTE_NORMAL)
-        {
-            nn.copy_from_slice(&n);
-        }
+        write_positions(&mut mesh, &pos, &core.triangles);
     }
     for (body, sm) in &bodies {
         let Some(mut mesh) = meshes.get_mut(&sm.handle) else {
             continue;
         };
-        let pos = surface_positions(body);
-        let n = normals(&pos, &body.surface().triangles);
-        if let Some(VertexAttributeValues::Float32x3(p)) =
-            mesh.attribute_mut(Mesh::ATTRIBUTE_POSITION)
-        {
-            p.copy_from_slice(&pos);
-        }
-        if let Some(VertexAttributeValues::Float32x3(nn)) =
-            mesh.attribute_mut(Mesh::ATTRIBUTE_NORMAL)
-        {
-            nn.copy_from_slice(&n);
-        }
+        write_positions(
+            &mut mesh,
+            &surface_positions(body),
+            &body.surface().triangles,
+        );
+    }
+}
+
+/// Rewrites a mesh's positions and smooth normals in place.
+fn write_positions(mesh: &mut Mesh, pos: &[[f32; 3]], tris: &[[usize; 3]]) {
+    let n = normals(pos, tris);
+    if let Some(VertexAttributeValues::Float32x3(p)) = mesh.attribute_mut(Mesh::ATTRIBUTE_POSITION)
+    {
+        p.copy_from_slice(pos);
+    }
+    if let Some(VertexAttributeValues::Float32x3(nn)) = mesh.attribute_mut(Mesh::ATTRIBUTE_NORMAL) {
+        nn.copy_from_slice(&n);
     }
 }
 
