@@ -63,14 +63,38 @@ fn main() -> Result<()> {
             let sym = body.preconditioner().symbolic().expect("factor");
             let mut union = std::collections::HashSet::new();
             let mut total = 0;
-            for c in &cs {
-                let mut j = sym.iperm[c.a.nodes[0] as usize];
+            let mut flops = 0usize;
+            let mut paths: Vec<Vec<usize>> = Vec::new();
+            let mut nodes: Vec<usize> = cs.iter().map(|c| c.a.nodes[0] as usize).collect();
+            nodes.sort();
+            nodes.dedup();
+            for &nd in &nodes {
+                let mut j = sym.iperm[nd];
+                let mut p = Vec::new();
                 while j != usize::MAX {
                     union.insert(j);
                     total += 1;
+                    flops += sym.col_ptr[j + 1] - sym.col_ptr[j];
+                    p.push(j);
                     j = sym.parent[j];
                 }
+                paths.push(p);
             }
+            let mut pair = 0usize;
+            for a in 0..paths.len() {
+                for b in a..paths.len() {
+                    let s: std::collections::HashSet<_> = paths[a].iter().collect();
+                    pair += paths[b].iter().filter(|x| s.contains(x)).count();
+                }
+            }
+            println!(
+                "  distinct nodes {}, fwd block-products {} ({} MFMA), pair-suffix nodes {} ({} MFMA)",
+                nodes.len(),
+                flops,
+                flops * 27 / 1000000,
+                pair,
+                pair * 27 / 1000000
+            );
             println!(
                 "  mean path {:.1} nodes, union {} nodes, L blocks {}",
                 total as f64 / n as f64,

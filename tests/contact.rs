@@ -669,3 +669,82 @@ fn rest_precomputed_refuses_large_meshes() {
     let err = scene.step(0.01).unwrap_err();
     assert!(matches!(err, SoftTissueError::TooLarge { .. }), "{err}");
 }
+
+/// The PGS keeps `δ = δ₀ + W λ` up to date incrementally; whatever the stop
+/// criterion, the returned `δ` is exact, the Signorini and cone conditions
+/// hold to what the displacement tolerance promises, and a looser tolerance
+/// costs fewer sweeps.
+#[test]
+fn lcp_incremental_delta_and_displacement_tolerance() {
+    use bevy_soft_tissue::contact::lcp;
+    // A coupled SPD W of 12 contacts with friction (rows n, t1, t2), a
+    // compliance-like scale (1e-4 m/N) and gaps that close half of the contacts.
+    let nc = 12;
+    let m = 3 * nc;
+    let b = DMatrix::from_fn(m, m, |i, j| ((i * 7 + j * 13) % 11) as f64 / 11.0 - 0.45);
+    let w = (&b * b.transpose() * 0.2 + DMatrix::identity(m, m)) * 1e-4;
+    let w_rows: Vec<f64> = (0..m)
+        .flat_map(|i| (0..m).map(move |j| (i, j)))
+        .map(|(i, j)| w[(i, j)])
+        .collect();
+    let delta0: Vec<f64> = (0..m)
+        .map(|r| match r % 3 {
+            0 if (r / 3) % 2 == 0 => -1e-5 * (1.0 + (r / 3) as f64 * 0.1),
+            0 => 2e-6,
+            _ => 3e-6 * ((r as f64) * 0.7).sin(),
+        })
+        .collect();
+    let rows: Vec<usize> = (0..=nc).map(|c| 3 * c).collect();
+    let mu = vec![0.3; nc];
+    let mut sweeps = Vec::new();
+    for tol in [1e-12, 1e-9, 1e-7] {
+        let settings = LcpSettings {
+            tolerance: 1e-300,
+            displacement_tolerance: tol,
+            ..Default::default()
+        };
+        let mut lambda = vec![0.0; m];
+        let mut delta = Vec::new();
+        let rep = lcp::solve(
+            &w_rows,
+            &delta0,
+            &rows,
+            &mu,
+            &mut lambda,
+            &settings,
+            &mut delta,
+        );
+        assert!(rep.iterations < settings.max_iterations, "{tol}: {rep:?}");
+        // The returned δ is δ₀ + W λ.
+        for r in 0..m {
+            let exact = delta0[r] + (0..m).map(|j| w[(r, j)] * lambda[j]).sum::<f64>();
+            assert!((delta[r] - exact).abs() <= 1e-15, "row {r}");
+        }
+        for &r in &rows[..nc] {
+            assert!(lambda[r] >= 0.0);
+            let t = (lambda[r + 1].powi(2) + lambda[r + 2].powi(2)).sqrt();
+            assert!(t <= 0.3 * lambda[r] * (1.0 + 1e-12) + 1e-300);
+        }
+        // Residuals within a small multiple of the displacement tolerance
+        // (each sweep's last change bounds how far δ can still move).
+        let bound = 50.0 * tol * nc as f64;
+        assert!(rep.complementarity <= bound, "{tol}: {rep:?}");
+        assert!(rep.penetration <= bound, "{tol}: {rep:?}");
+        assert!(rep.friction <= bound, "{tol}: {rep:?}");
+        assert!(lambda.iter().any(|&l| l > 0.0));
+        sweeps.push(rep.iterations);
+    }
+    assert!(
+        sweeps[0] > sweeps[1] && sweeps[1] > sweeps[2],
+        "looser tolerances must stop earlier: {sweeps:?}"
+    );
+    // A negative or NaN tolerance is refused.
+    for bad in [-1.0, f64::NAN] {
+        let mut s = ContactSettings::default();
+        s.lcp.displacement_tolerance = bad;
+        assert!(matches!(
+            ContactSolver::new(s),
+            Err(SoftTissueError::InvalidParameter { .. })
+        ));
+    }
+}

@@ -87,6 +87,14 @@ impl ContactSettings {
         check_positive("alarm_distance", self.alarm_distance)?;
         crate::error::check_range("body_friction", self.body_friction, 0.0, 1e6)?;
         check_positive("lcp.tolerance", self.lcp.tolerance)?;
+        let dt = self.lcp.displacement_tolerance;
+        if !(dt.is_finite() && dt >= 0.0) {
+            return Err(SoftTissueError::InvalidParameter {
+                name: "lcp.displacement_tolerance",
+                value: dt,
+                reason: "must be finite and non-negative",
+            });
+        }
         if !(self.lcp.over_relaxation > 0.0 && self.lcp.over_relaxation < 2.0) {
             return Err(SoftTissueError::InvalidParameter {
                 name: "lcp.over_relaxation",
@@ -215,6 +223,7 @@ pub struct ContactSolver {
     delta0: Vec<f64>,
     w: Vec<f64>,
     lambda: Vec<f64>,
+    lcp_delta: Vec<f64>,
     previous: HashMap<ContactKey, [f64; 3]>,
     report: ContactReport,
     h: f64,
@@ -644,6 +653,7 @@ impl ContactSolver {
             &self.mu,
             &mut self.lambda,
             &self.settings.lcp,
+            &mut self.lcp_delta,
         );
         if self.pass == 0 {
             self.previous.clear();

@@ -130,6 +130,13 @@ pub struct HeadlessSummary {
     pub lens_center: (crate::math::Vec3, crate::math::Vec3),
     /// Median step time over the steps with 50–90 contacts, if any.
     pub median_ms_50_90: Option<f64>,
+    /// Mean milliseconds per phase (same order as [`Self::median_ms`]) over the
+    /// steps with 50–90 contacts: where the time of those steps goes.
+    pub mean_ms_50_90: [f64; 8],
+    /// Mean CG iterations per step (both bodies) over the steps with 50–90 contacts.
+    pub cg_iterations_50_90: f64,
+    /// Mean LCP sweeps and contact passes per step over the steps with 50–90 contacts.
+    pub lcp_50_90: (f64, f64),
 }
 
 /// Runs the cataract scene without a window for `steps` fixed steps and
@@ -171,6 +178,9 @@ pub fn run_headless(
     let mut phases: [Vec<f64>; 8] = Default::default();
     let mut contacts = Vec::new();
     let mut band = Vec::new();
+    let mut band_sum = [0.0f64; 8];
+    let mut band_cg = 0usize;
+    let mut band_lcp = (0usize, 0usize);
     let mut cg = 0usize;
     let mut max_pen: f64 = 0.0;
     let mut done = 0;
@@ -213,6 +223,12 @@ pub fn run_headless(
         contacts.push(d.contacts);
         if (50..=90).contains(&d.contacts) {
             band.push(d.step_ms());
+            for (acc, x) in band_sum.iter_mut().zip(v) {
+                *acc += x;
+            }
+            band_cg += d.cg_iterations;
+            band_lcp.0 += d.lcp_iterations;
+            band_lcp.1 += d.contact_passes;
         }
         cg += d.cg_iterations;
         // Penetration of lens and eye vertices into the vectis.
@@ -265,6 +281,12 @@ pub fn run_headless(
         max_penetration: max_pen,
         tolerance,
         lens_center: (start, end),
+        mean_ms_50_90: band_sum.map(|x| x / band.len().max(1) as f64),
+        cg_iterations_50_90: band_cg as f64 / band.len().max(1) as f64,
+        lcp_50_90: (
+            band_lcp.0 as f64 / band.len().max(1) as f64,
+            band_lcp.1 as f64 / band.len().max(1) as f64,
+        ),
         median_ms_50_90: (!band.is_empty()).then(|| med(&mut band)),
     };
     Ok(summary)
