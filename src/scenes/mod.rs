@@ -231,6 +231,20 @@ pub fn run_headless(
             band_lcp.1 += d.contact_passes;
         }
         cg += d.cg_iterations;
+        if std::env::var("TRAJ").is_ok() && done % 30 == 0 {
+            let c = lens_center(&mut app).unwrap_or(start) - start;
+            eprintln!(
+                "step {done} lens {:.2} {:.2} {:.2} mm contacts {} cg {} passes {} sweeps {} age {}",
+                c.x * 1e3,
+                c.y * 1e3,
+                c.z * 1e3,
+                d.contacts,
+                d.cg_iterations,
+                d.contact_passes,
+                d.lcp_iterations,
+                d.factor_age
+            );
+        }
         // Penetration of lens and eye vertices into the vectis.
         let world = app.world_mut();
         let tools: Vec<crate::contact::RigidTool> = world

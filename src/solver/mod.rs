@@ -23,7 +23,11 @@
 //! buffers and handed over. Buffers circulate between the two threads, so the
 //! steady state allocates nothing. Dropping the factorizer stops and joins the
 //! worker. Across all bodies at most `cores − 1` factorizations run at once, so
-//! the stepping thread keeps a core of its own.
+//! the stepping thread keeps a core of its own. Bodies that find every slot
+//! taken queue for one in order (first come, first served): a body that has
+//! just received its factor cannot take the freed slot again ahead of a body
+//! still waiting, so with two bodies on two cores they take turns instead of
+//! one of them starving with an ever older factor.
 
 pub mod cg;
 pub mod ldlt;
@@ -113,6 +117,11 @@ static IN_FLIGHT: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsiz
 
 /// How many background factorizations may run at once: one core is left to the
 /// stepping thread (at least one worker).
+/// Factorizers waiting for a background slot, oldest first.
+static WAITING: std::sync::Mutex<std::collections::VecDeque<u64>> =
+    std::sync::Mutex::new(std::collections::VecDeque::new());
+static NEXT_ID: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+
 fn max_in_flight() -> usize {
     std::thread::available_parallelism()
         .map(|n| n.get().saturating_sub(1))
@@ -122,6 +131,7 @@ fn max_in_flight() -> usize {
 
 /// Background `LDLᵀ` worker (see the module docs).
 pub struct AsyncFactorizer {
+    id: u64,
     tx: Option<Sender<Job>>,
     rx: Receiver<Done>,
     handle: Option<JoinHandle<()>>,
@@ -181,6 +191,7 @@ impl AsyncFactorizer {
             symbolic.alloc_factor(),
         ));
         Self {
+            id: NEXT_ID.fetch_add(1, Ordering::Relaxed),
             tx: Some(tx),
             rx,
             handle,
@@ -227,15 +238,26 @@ impl AsyncFactorizer {
             return;
         }
         // Share the machine: with several bodies, at most `cores − 1` factorizations run
-        // at once; the others hand over their matrix a step later.
+        // at once; the others queue and hand over their matrix when their turn comes.
         let limit = max_in_flight();
-        if IN_FLIGHT
-            .fetch_update(Ordering::SeqCst, Ordering::SeqCst, |n| {
-                (n < limit).then_some(n + 1)
-            })
-            .is_err()
         {
-            return;
+            let mut waiting = WAITING.lock().unwrap_or_else(|e| e.into_inner());
+            let first = waiting.front().is_none_or(|&w| w == self.id);
+            let got = first
+                && IN_FLIGHT
+                    .fetch_update(Ordering::SeqCst, Ordering::SeqCst, |n| {
+                        (n < limit).then_some(n + 1)
+                    })
+                    .is_ok();
+            if !got {
+                if !waiting.contains(&self.id) {
+                    waiting.push_back(self.id);
+                }
+                return;
+            }
+            if first && !waiting.is_empty() {
+                waiting.pop_front();
+            }
         }
         let (Some(tx), Some((mut values, mut rots, factor))) = (&self.tx, self.spare.take()) else {
             return;
@@ -258,6 +280,10 @@ impl AsyncFactorizer {
 
 impl Drop for AsyncFactorizer {
     fn drop(&mut self) {
+        WAITING
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .retain(|&w| w != self.id);
         self.tx = None;
         // Drain a finished job so the worker is not stuck on a full channel.
         while self.rx.try_recv().is_ok() {}
