@@ -155,8 +155,11 @@ fn headless(args: &Args, params: &CataractParams, config: SoftTissueConfig) -> E
             );
             let moved = (s.lens_center.1 - s.lens_center.0) * 1e3;
             println!(
-                "lens centre moved by ({:.2}, {:.2}, {:.2}) mm",
-                moved.x, moved.y, moved.z
+                "lens centre moved by ({:.2}, {:.2}, {:.2}) mm, peak speed {:.1} mm/s",
+                moved.x,
+                moved.y,
+                moved.z,
+                s.max_lens_speed * 1e3
             );
             println!(
                 "max penetration {:.2e} m (tolerance {:.2e} m)",

@@ -614,7 +614,7 @@ impl DeformableBody {
                 self.accel[i] = self.prescribed[i];
             }
         }
-        let report = cg::solve(
+        let mut report = cg::solve(
             &self.matrix,
             &self.rhs,
             &mut self.accel,
@@ -622,6 +622,33 @@ impl DeformableBody {
             &self.settings.cg,
             &mut self.scratch,
         );
+        // Rescue: the factor in use may be from a shape the matrix has left
+        // (an element flipping, a sudden large deformation). Rather than take an
+        // unconverged step, factorize the current matrix now, once, and go on
+        // from the last iterate. This blocks the step, so it is the exception.
+        if !report.converged
+            && matches!(
+                self.settings.preconditioner,
+                PreconditionerKind::Periodic { .. } | PreconditionerKind::Async
+            )
+            && self
+                .precond
+                .refactor_now(&self.matrix, &self.node_rot, self.step_index)?
+        {
+            let again = cg::solve(
+                &self.matrix,
+                &self.rhs,
+                &mut self.accel,
+                &mut self.precond,
+                &self.settings.cg,
+                &mut self.scratch,
+            );
+            report.iterations += again.iterations;
+            report.precond_seconds += again.precond_seconds;
+            report.converged = again.converged;
+            report.residual = again.residual;
+            self.report.preconditioner = self.precond.stats();
+        }
         self.x_start.copy_from_slice(&self.x);
         for i in 0..self.x.len() {
             self.v[i] += self.accel[i] * h;

@@ -921,3 +921,54 @@ fn material_change_at_runtime_changes_stiffness() {
     let (soft, stiff) = (sag(1e5), sag(1e6));
     assert!(soft > 5.0 * stiff, "soft {soft}, stiff {stiff}");
 }
+
+/// When CG does not converge with an old factor (here: the core became 10⁵×
+/// stiffer than the rest since the factor was made, and CG may run only 20 iterations), the
+/// step factorizes the current matrix on the spot and converges.
+#[test]
+fn unconverged_cg_rescues_with_a_fresh_factor() {
+    for kind in [
+        PreconditionerKind::Periodic { every: 1_000_000 },
+        PreconditionerKind::Async,
+    ] {
+        let mesh = generate::ellipsoid(LENS_RADII, 6).unwrap();
+        let mut settings = BodySettings {
+            preconditioner: kind,
+            gravity: Some(v3(0.0, -9.81, 0.0)),
+            ..Default::default()
+        };
+        settings.cg.max_iterations = 20;
+        let mut body = DeformableBody::new(mesh, lens_material(), settings).unwrap();
+        body.fix_where(|p| p.z < -1.5e-3);
+        for _ in 0..3 {
+            let r = body.step(0.01).unwrap();
+            assert!(r.cg.converged, "{kind:?}: {:?}", r.cg);
+        }
+        assert_eq!(body.report().preconditioner.rescues, 0, "{kind:?}");
+        // Periodic never refreshes by itself; Async may hand in a factor of the
+        // new matrix a step later, so stiffen and step at once.
+        let stiff = TissueMaterial::new(1000.0, 5e3, 0.45)
+            .with_stiffness(StiffnessField::Radial {
+                center: Vec3::zeros(),
+                radii: Vec3::from(LENS_RADII),
+                core_radius: 0.5,
+                factor: 1e5,
+                transition: Transition::Sharp,
+            })
+            .with_damping(1.0, 0.01);
+        body.set_material(stiff).unwrap();
+        let r = body.step(0.01).unwrap();
+        assert!(r.cg.converged, "{kind:?}: {:?}", r.cg);
+        assert!(
+            r.cg.iterations > 20,
+            "{kind:?}: the old factor failed first"
+        );
+        assert_eq!(r.preconditioner.rescues, 1, "{kind:?}");
+        assert_eq!(r.preconditioner.factor_age, 0);
+        assert!(
+            body.positions()
+                .iter()
+                .all(|p| p.iter().all(|c| c.is_finite()))
+        );
+    }
+}

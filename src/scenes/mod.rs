@@ -128,6 +128,9 @@ pub struct HeadlessSummary {
     pub tolerance: f64,
     /// Lens centre at the start and at the end.
     pub lens_center: (crate::math::Vec3, crate::math::Vec3),
+    /// Largest speed of the lens's centre of mass (mean node velocity) seen, m/s:
+    /// a stability check, as the vectis itself moves at about 1 mm/s.
+    pub max_lens_speed: f64,
     /// Median step time over the steps with 50–90 contacts, if any.
     pub median_ms_50_90: Option<f64>,
     /// Mean milliseconds per phase (same order as [`Self::median_ms`]) over the
@@ -183,6 +186,7 @@ pub fn run_headless(
     let mut band_lcp = (0usize, 0usize);
     let mut cg = 0usize;
     let mut max_pen: f64 = 0.0;
+    let mut max_lens_speed: f64 = 0.0;
     let mut done = 0;
     let mut last = app.world().resource::<SoftTissueDiagnostics>().steps;
     let mut guard = 0;
@@ -231,19 +235,13 @@ pub fn run_headless(
             band_lcp.1 += d.contact_passes;
         }
         cg += d.cg_iterations;
-        if std::env::var("TRAJ").is_ok() && done % 30 == 0 {
-            let c = lens_center(&mut app).unwrap_or(start) - start;
-            eprintln!(
-                "step {done} lens {:.2} {:.2} {:.2} mm contacts {} cg {} passes {} sweeps {} age {}",
-                c.x * 1e3,
-                c.y * 1e3,
-                c.z * 1e3,
-                d.contacts,
-                d.cg_iterations,
-                d.contact_passes,
-                d.lcp_iterations,
-                d.factor_age
-            );
+        {
+            let mut q = app.world_mut().query_filtered::<&SoftBody, With<Lens>>();
+            if let Some(b) = q.iter(app.world()).next() {
+                let v = b.velocities();
+                let mean = v.iter().sum::<crate::math::Vec3>() / v.len().max(1) as f64;
+                max_lens_speed = max_lens_speed.max(mean.norm());
+            }
         }
         // Penetration of lens and eye vertices into the vectis.
         let world = app.world_mut();
@@ -295,6 +293,7 @@ pub fn run_headless(
         max_penetration: max_pen,
         tolerance,
         lens_center: (start, end),
+        max_lens_speed,
         mean_ms_50_90: band_sum.map(|x| x / band.len().max(1) as f64),
         cg_iterations_50_90: band_cg as f64 / band.len().max(1) as f64,
         lcp_50_90: (

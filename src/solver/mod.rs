@@ -94,6 +94,8 @@ pub struct PreconditionerStats {
     pub blocking_seconds: f64,
     /// Factorizations that failed (the previous factor was kept).
     pub failures: u64,
+    /// Blocking refactorizations because CG did not converge with the old factor.
+    pub rescues: u64,
 }
 
 struct Job {
@@ -387,6 +389,23 @@ impl PreconditionerState {
         self.worker.as_ref()
     }
 
+    /// Factorizes `a` now, on this thread, for the kinds that keep a factor
+    /// (`Exact`, `Periodic`, `Async`); the rescue when CG fails to converge with
+    /// a factor the matrix has moved away from. Returns whether a factor was made.
+    pub fn refactor_now(&mut self, a: &BlockCsr, rotations: &[Mat3], step: u64) -> Result<bool> {
+        if self.state.is_none() || self.symbolic.is_none() {
+            return Ok(false);
+        }
+        self.factorize_now(a, rotations, step)?;
+        if let Some(st) = &mut self.state {
+            st.warped = false;
+            st.warp.fill(Mat3::identity());
+        }
+        self.stats.rescues += 1;
+        self.stats.factor_age = 0;
+        Ok(true)
+    }
+
     fn factorize_now(&mut self, a: &BlockCsr, rotations: &[Mat3], step: u64) -> Result<()> {
         let Some(sym) = self.symbolic.clone() else {
             return Ok(());
@@ -450,7 +469,10 @@ impl PreconditionerState {
                     && let Some(mut done) = w.try_take(false)
                 {
                     self.stats.factor_seconds = done.seconds;
+                    let stale = self.state.as_ref().is_some_and(|st| done.step < st.step);
                     match done.result {
+                        // A rescue factorized a newer matrix meanwhile: keep that one.
+                        Ok(()) if stale => {}
                         Ok(()) => {
                             if let Some(st) = &mut self.state {
                                 std::mem::swap(&mut st.factor, &mut done.factor);
