@@ -301,11 +301,12 @@ fn cataract_scene_runs_headless() {
         moved > 0.5e-3,
         "lens moved only {moved} m toward the incision"
     );
-    // Stable: the vectis moves at about 1 mm/s. Once its widest part passes the
-    // slit, the squeezed coarse lens springs out of the incision at up to
-    // ~30 mm/s; a numerical blow-up is far faster.
+    // Stable: the vectis moves at about 1 mm/s and 7 mm in all; in the
+    // scene's viscous medium the squeezed lens follows it and is not shot off.
+    let total = (s.lens_center.1 - s.lens_center.0).norm();
+    assert!(total < 7e-3, "lens moved {total} m");
     assert!(
-        s.max_lens_speed < 0.05,
+        s.max_lens_speed < 0.03,
         "peak lens speed {} m/s",
         s.max_lens_speed
     );
