@@ -60,15 +60,12 @@ pub struct ContactSettings {
     pub penetration_tolerance: f64,
     /// Steps that `Factorized` compliance keeps using a factor after the
     /// preconditioner swapped in a newer one (0, the default: always the
-    /// newest). Node columns and Gram blocks are cached per factor, so reusing
-    /// one for a few steps makes most steps' `W` nearly free. It trades
-    /// accuracy for time: the rotation warp follows rotations but not changes of
-    /// shape, and the correction `C Hᵀ λ` of an old factor moves the free nodes
-    /// in a shape the current stiffness does not agree with. Under large
-    /// deformation (a lens squeezed into an incision) that puts energy in: with
-    /// 8 steps, 2 of 10 runs of the cataract scene launched the lens, against
-    /// none of 10 with 0. Applies to bodies whose preconditioner warps
-    /// (`Periodic`, `Async`).
+    /// newest, the most accurate `W`). Node columns and Gram blocks are cached
+    /// per factor, so reusing one for a few steps makes more steps' `W` nearly
+    /// free. It trades accuracy for time: the rotation warp follows rotations
+    /// but not changes of shape, so `W` and the correction drift from the
+    /// current stiffness as the tissue deforms. Applies to bodies whose
+    /// preconditioner warps (`Periodic`, `Async`).
     pub factor_reuse: u64,
 }
 

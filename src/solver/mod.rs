@@ -16,6 +16,14 @@
 //! and `P⁻¹ = Q (L D Lᵀ)⁻¹ Qᵀ`. Node rotations are the polar part of the sum
 //! of the rotations of the elements around the node.
 //!
+//! ## Rescue
+//! The warp follows rotations, not changes of shape. If CG runs out of
+//! iterations with an old factor (`Periodic`, `Async`), the body factorizes the
+//! current matrix on the stepping thread ([`PreconditionerState::refactor_now`])
+//! and continues from the last iterate, so no unconverged step is taken. This
+//! blocks that step and is counted in [`PreconditionerStats::rescues`]; a late
+//! background factor of an older matrix is then discarded.
+//!
 //! ## Asynchronous refresh
 //! [`AsyncFactorizer`] owns a worker thread (crossbeam channels). At the start
 //! of a step a finished factor, if any, is swapped in; then, if the worker is
