@@ -614,28 +614,9 @@ impl DeformableBody {
                 self.accel[i] = self.prescribed[i];
             }
         }
-        let mut report = cg::solve(
-            &self.matrix,
-            &self.rhs,
-            &mut self.accel,
-            &mut self.precond,
-            &self.settings.cg,
-            &mut self.scratch,
-        );
-        // Rescue: the factor in use may be from a shape the matrix has left
-        // (an element flipping, a sudden large deformation). Rather than take an
-        // unconverged step, factorize the current matrix now, once, and go on
-        // from the last iterate. This blocks the step, so it is the exception.
-        if !report.converged
-            && matches!(
-                self.settings.preconditioner,
-                PreconditionerKind::Periodic { .. } | PreconditionerKind::Async
-            )
-            && self
-                .precond
-                .refactor_now(&self.matrix, &self.node_rot, self.step_index)?
-        {
-            let again = cg::solve(
+        let mut report = CgReport::default();
+        for attempt in 0..2 {
+            let r = cg::solve(
                 &self.matrix,
                 &self.rhs,
                 &mut self.accel,
@@ -643,10 +624,26 @@ impl DeformableBody {
                 &self.settings.cg,
                 &mut self.scratch,
             );
-            report.iterations += again.iterations;
-            report.precond_seconds += again.precond_seconds;
-            report.converged = again.converged;
-            report.residual = again.residual;
+            report.iterations += r.iterations;
+            report.precond_seconds += r.precond_seconds;
+            report.converged = r.converged;
+            report.residual = r.residual;
+            // Rescue: the factor in use may be from a shape the matrix has left
+            // (a sudden large deformation). Rather than take an unconverged step,
+            // factorize the current matrix now, once, and go on from the last
+            // iterate. This blocks the step, so it is the exception.
+            let rescue = attempt == 0
+                && !r.converged
+                && matches!(
+                    self.settings.preconditioner,
+                    PreconditionerKind::Periodic { .. } | PreconditionerKind::Async
+                )
+                && self
+                    .precond
+                    .refactor_now(&self.matrix, &self.node_rot, self.step_index)?;
+            if !rescue {
+                break;
+            }
             self.report.preconditioner = self.precond.stats();
         }
         self.x_start.copy_from_slice(&self.x);
