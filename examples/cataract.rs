@@ -5,7 +5,9 @@
 //! cargo run --release --example cataract -- --headless --steps 600     # per-phase timings
 //! ```
 //!
-//! Options: `--headless`, `--steps N` (headless, default 480), `--coarse`
+//! Options: `--headless`, `--steps N` (headless, default: the scripted path and
+//! one second more, 540 or with `--deliver` 900), `--deliver` (push the lens on
+//! through the incision and out of the eye, `CataractParams::deliver`), `--coarse`
 //! (light meshes), `--preconditioner jacobi|exact|periodicN|async`,
 //! `--compliance factorized|exact|diagonal|rest|dense`, `--reuse N` (steps a
 //! factor serves the compliance, `ContactSettings::factor_reuse`), `--passes N`
@@ -33,6 +35,7 @@ struct Args {
     headless: bool,
     steps: usize,
     coarse: bool,
+    deliver: bool,
     preconditioner: PreconditionerKind,
     compliance: ComplianceMode,
     reuse: Option<u64>,
@@ -42,8 +45,9 @@ struct Args {
 fn parse() -> Result<Args, String> {
     let mut a = Args {
         headless: false,
-        steps: 480,
+        steps: 0,
         coarse: false,
+        deliver: false,
         preconditioner: PreconditionerKind::Async,
         compliance: ComplianceMode::Factorized,
         reuse: None,
@@ -60,6 +64,7 @@ fn parse() -> Result<Args, String> {
         match args[i].as_str() {
             "--headless" => a.headless = true,
             "--coarse" => a.coarse = true,
+            "--deliver" => a.deliver = true,
             "--steps" => {
                 a.steps = value()?
                     .parse()
@@ -186,11 +191,17 @@ fn main() -> ExitCode {
             return ExitCode::FAILURE;
         }
     };
-    let params = if args.coarse {
+    let mut args = args;
+    let mut params = if args.coarse {
         CataractParams::coarse()
     } else {
         CataractParams::default()
     };
+    params.deliver = args.deliver;
+    if args.steps == 0 {
+        // The scripted path and one second more.
+        args.steps = if args.deliver { 900 } else { 540 };
+    }
     let mut config = SoftTissueConfig {
         timestep: 1.0 / 60.0,
         preconditioner: args.preconditioner,

@@ -313,6 +313,39 @@ fn cataract_scene_runs_headless() {
 }
 
 #[test]
+fn cataract_scene_delivers_the_lens_through_the_incision() {
+    use bevy_soft_tissue::scenes::{cataract::CataractParams, run_headless};
+    let mut params = CataractParams::coarse();
+    params.deliver = true;
+    let config = SoftTissueConfig {
+        timestep: 1.0 / 60.0,
+        preconditioner: bevy_soft_tissue::solver::PreconditionerKind::Periodic { every: 4 },
+        ..Default::default()
+    };
+    let s = run_headless(&params, config, 900).unwrap();
+    assert!(
+        s.max_penetration <= s.tolerance,
+        "penetration {} > {}",
+        s.max_penetration,
+        s.tolerance
+    );
+    // The eye is centred at the origin; the lens centre ends outside it, on the
+    // incision's side.
+    let (end, radius) = (s.lens_center.1, params.eye.radius);
+    assert!(end.norm() > radius, "lens centre at {} m", end.norm());
+    let d = bevy_soft_tissue::scenes::cataract::incision_direction(&params);
+    assert!(
+        end.normalize().dot(&d) > 0.9,
+        "not through the incision: {end:?}"
+    );
+    assert!(
+        s.max_lens_speed < 0.05,
+        "peak lens speed {} m/s",
+        s.max_lens_speed
+    );
+}
+
+#[test]
 fn timestep_changes_reach_the_fixed_clock() {
     let mut app = app(SoftTissueConfig {
         timestep: H,
