@@ -234,10 +234,8 @@ impl LdltSymbolic {
                 let dst = self.reach_dst[t];
                 let w = unit_lower_solve_mat(&out.ldiag[i], &y[i]);
                 y[i] = Mat3::zeros();
-                for p in self.col_ptr[i]..dst {
-                    let r = self.row_idx[p];
-                    y[r] -= out.l[p] * w;
-                }
+                let range = self.col_ptr[i]..dst;
+                sub_products_any(&out.l[range.clone()], &self.row_idx[range], &w, y);
                 let di = out.d[i];
                 let mut lki = w.transpose();
                 for c in 0..3 {
@@ -437,9 +435,6 @@ impl LdltFactor {
         blocks: &mut Vec<Mat3>,
     ) {
         let s = &*self.symbolic;
-        #[cfg(target_arch = "x86_64")]
-        let fast = std::arch::is_x86_feature_detected!("avx2")
-            && std::arch::is_x86_feature_detected!("fma");
         let mut j = s.iperm[node];
         work[j] = Mat3::identity();
         while j != NONE {
@@ -449,20 +444,24 @@ impl LdltFactor {
                 &self.l[s.col_ptr[j]..s.col_ptr[j + 1]],
                 &s.row_idx[s.col_ptr[j]..s.col_ptr[j + 1]],
             );
-            #[cfg(target_arch = "x86_64")]
-            if fast {
-                // SAFETY: the CPU supports the features the function is compiled for.
-                unsafe { sub_products_avx2(cols, rows, &zj, work) };
-            } else {
-                sub_products(cols, rows, &zj, work);
-            }
-            #[cfg(not(target_arch = "x86_64"))]
-            sub_products(cols, rows, &zj, work);
+            sub_products_any(cols, rows, &zj, work);
             path.push(j);
             blocks.push(zj);
             j = s.parent[j];
         }
     }
+}
+
+/// `work[rows[i]] -= l[i] · z` for every block of one column of `L` (the inner
+/// loop of the factorization and of the node column solves), with the
+/// AVX2/FMA kernel where the CPU has it.
+fn sub_products_any(l: &[Mat3], rows: &[usize], z: &Mat3, work: &mut [Mat3]) {
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
+        // SAFETY: the CPU supports the features the function is compiled for.
+        return unsafe { sub_products_avx2(l, rows, z, work) };
+    }
+    sub_products(l, rows, z, work);
 }
 
 /// `work[rows[i]] -= l[i] · z` for every block of one column of `L`.
