@@ -634,10 +634,6 @@ impl DeformableBody {
             // iterate. This blocks the step, so it is the exception.
             let rescue = attempt == 0
                 && !r.converged
-                && matches!(
-                    self.settings.preconditioner,
-                    PreconditionerKind::Periodic { .. } | PreconditionerKind::Async
-                )
                 && self
                     .precond
                     .refactor_now(&self.matrix, &self.node_rot, self.step_index)?;

@@ -120,3 +120,17 @@ pub fn polar_rotation_fast(f: &Mat3) -> Mat3 {
     }
     polar_rotation(f)
 }
+
+/// Whether the CPU runs the AVX2/FMA kernels of the solver and the compliance
+/// (x86-64 only; detected once by the standard library, then a cached load).
+#[inline]
+pub(crate) fn has_avx2_fma() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma")
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        false
+    }
+}

@@ -270,19 +270,31 @@ fn user_systems_move_tools_before_detection() {
     assert_eq!(seen[..3], [11.0, 12.0, 13.0]);
 }
 
-#[test]
-fn cataract_scene_runs_headless() {
-    use bevy_soft_tissue::scenes::{cataract::CataractParams, run_headless};
-    let params = CataractParams::coarse();
-    // A periodic refresh keeps the run deterministic (the async worker's timing
-    // changes the trajectory from run to run).
+/// Runs the coarse cataract scene headless for `steps` steps, with a periodic
+/// refresh that keeps the run deterministic (the async worker's timing changes
+/// the trajectory from run to run).
+fn coarse_cataract(
+    deliver: bool,
+    steps: usize,
+) -> (
+    bevy_soft_tissue::scenes::cataract::CataractParams,
+    bevy_soft_tissue::scenes::HeadlessSummary,
+) {
+    let mut params = bevy_soft_tissue::scenes::cataract::CataractParams::coarse();
+    params.deliver = deliver;
     let config = SoftTissueConfig {
         timestep: 1.0 / 60.0,
         preconditioner: bevy_soft_tissue::solver::PreconditionerKind::Periodic { every: 4 },
         ..Default::default()
     };
-    let s = run_headless(&params, config, 240).unwrap();
+    let s = bevy_soft_tissue::scenes::run_headless(&params, config, steps).unwrap();
     println!("{s:?}");
+    (params, s)
+}
+
+#[test]
+fn cataract_scene_runs_headless() {
+    let (params, s) = coarse_cataract(false, 240);
     assert!(
         s.max_penetration <= s.tolerance,
         "penetration {} > {}",
@@ -314,15 +326,7 @@ fn cataract_scene_runs_headless() {
 
 #[test]
 fn cataract_scene_delivers_the_lens_through_the_incision() {
-    use bevy_soft_tissue::scenes::{cataract::CataractParams, run_headless};
-    let mut params = CataractParams::coarse();
-    params.deliver = true;
-    let config = SoftTissueConfig {
-        timestep: 1.0 / 60.0,
-        preconditioner: bevy_soft_tissue::solver::PreconditionerKind::Periodic { every: 4 },
-        ..Default::default()
-    };
-    let s = run_headless(&params, config, 900).unwrap();
+    let (params, s) = coarse_cataract(true, 900);
     assert!(
         s.max_penetration <= s.tolerance,
         "penetration {} > {}",
@@ -345,6 +349,13 @@ fn cataract_scene_delivers_the_lens_through_the_incision() {
     );
 }
 
+fn fixed_timestep(app: &App) -> f64 {
+    app.world()
+        .resource::<Time<Fixed>>()
+        .timestep()
+        .as_secs_f64()
+}
+
 #[test]
 fn timestep_changes_reach_the_fixed_clock() {
     let mut app = app(SoftTissueConfig {
@@ -352,37 +363,13 @@ fn timestep_changes_reach_the_fixed_clock() {
         ..Default::default()
     });
     app.update();
-    assert!(
-        (app.world()
-            .resource::<Time<Fixed>>()
-            .timestep()
-            .as_secs_f64()
-            - H)
-            .abs()
-            < 1e-9
-    );
+    assert!((fixed_timestep(&app) - H).abs() < 1e-9);
     app.world_mut().resource_mut::<SoftTissueConfig>().timestep = 0.004;
     app.update();
-    assert!(
-        (app.world()
-            .resource::<Time<Fixed>>()
-            .timestep()
-            .as_secs_f64()
-            - 0.004)
-            .abs()
-            < 1e-9
-    );
+    assert!((fixed_timestep(&app) - 0.004).abs() < 1e-9);
     // An impossible step size is rejected with an error count, not a panic.
     app.world_mut().resource_mut::<SoftTissueConfig>().timestep = -1.0;
     app.update();
     assert!(app.world().resource::<SoftTissueDiagnostics>().errors > 0);
-    assert!(
-        (app.world()
-            .resource::<Time<Fixed>>()
-            .timestep()
-            .as_secs_f64()
-            - 0.004)
-            .abs()
-            < 1e-9
-    );
+    assert!((fixed_timestep(&app) - 0.004).abs() < 1e-9);
 }

@@ -111,11 +111,11 @@ struct Column {
 /// fused multiply-adds; elsewhere a portable loop of two rows per step.
 fn gram3(z: [&[f64]; 3], s: [&[f64]; 3]) -> Mat3 {
     #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
+    if crate::math::has_avx2_fma() {
         // SAFETY: the CPU supports the features the function is compiled for.
         return unsafe { gram3_avx2(z, s) };
     }
-    gram3_kernel::<2>(z, s)
+    gram3_portable(z, s)
 }
 
 #[cfg(target_arch = "x86_64")]
@@ -167,8 +167,9 @@ fn gram3_avx2(z: [&[f64]; 3], s: [&[f64]; 3]) -> Mat3 {
     g
 }
 
-#[inline]
-fn gram3_kernel<const W: usize>(z: [&[f64]; 3], s: [&[f64]; 3]) -> Mat3 {
+/// [`gram3`] without SIMD intrinsics: rows in pairs, which the compiler vectorizes.
+fn gram3_portable(z: [&[f64]; 3], s: [&[f64]; 3]) -> Mat3 {
+    const W: usize = 2;
     let n = z[0].len();
     let (z0, z1, z2) = (&z[0][..n], &z[1][..n], &z[2][..n]);
     let (s0, s1, s2) = (&s[0][..n], &s[1][..n], &s[2][..n]);
@@ -833,7 +834,7 @@ mod tests {
             let zr = [&z[0][..], &z[1][..], &z[2][..]];
             let sr = [&s[0][..], &s[1][..], &s[2][..]];
             let fast = gram3(zr, sr);
-            let portable = gram3_kernel::<2>(zr, sr);
+            let portable = gram3_portable(zr, sr);
             for a in 0..3 {
                 for b in 0..3 {
                     let plain: f64 = (0..n).map(|r| z[a][r] * s[b][r]).sum();

@@ -33,6 +33,15 @@ use std::time::Instant;
 use crate::body::{DeformableBody, NodeConstraint};
 use crate::error::{Result, SoftTissueError, check_positive};
 use crate::math::Vec3;
+
+/// A body as the contact phases read it: `&DeformableBody` or
+/// `&mut DeformableBody`, so callers that hold either pass their slice as is.
+pub trait BodyRef: std::ops::Deref<Target = DeformableBody> {}
+impl<B: std::ops::Deref<Target = DeformableBody>> BodyRef for B {}
+
+/// A tool as the contact phases read it: `&RigidTool` or `&mut RigidTool`.
+trait ToolRef: std::ops::Deref<Target = RigidTool> {}
+impl<T: std::ops::Deref<Target = RigidTool>> ToolRef for T {}
 pub use compliance::{BodyCompliance, ComplianceBackend, ComplianceMode, JacEntry};
 use detect::{TriangleBvh, boxes_overlap, closest_point_on_triangle};
 pub use lcp::{LcpReport, LcpSettings};
@@ -309,7 +318,7 @@ impl ContactSolver {
             .sum()
     }
 
-    fn prepare_slots(&mut self, bodies: &[&DeformableBody]) {
+    fn prepare_slots<B: BodyRef>(&mut self, bodies: &[B]) {
         self.slots.resize_with(bodies.len(), BodySlot::default);
         for (slot, b) in self.slots.iter_mut().zip(bodies) {
             if slot.id != b.id() {
@@ -335,6 +344,17 @@ impl ContactSolver {
         &mut self,
         bodies: &[&DeformableBody],
         tools: &[&RigidTool],
+        h: f64,
+    ) -> Result<()> {
+        self.detect_in(bodies, tools, h)
+    }
+
+    /// [`Self::detect`] for any slice of body and tool references (the passes of
+    /// [`Self::step`] hold `&mut` ones), without collecting new slices.
+    fn detect_in<B: BodyRef, T: ToolRef>(
+        &mut self,
+        bodies: &[B],
+        tools: &[T],
         h: f64,
     ) -> Result<()> {
         let t0 = Instant::now();
@@ -418,7 +438,7 @@ impl ContactSolver {
         Ok(())
     }
 
-    fn vertex_triangle(&mut self, bodies: &[&DeformableBody], a: usize, b: usize, margin: f64) {
+    fn vertex_triangle<B: BodyRef>(&mut self, bodies: &[B], a: usize, b: usize, margin: f64) {
         let (xa, xb) = (bodies[a].positions(), bodies[b].positions());
         let (sa, sb) = (bodies[a].start_positions(), bodies[b].start_positions());
         let mu = self.settings.body_friction;
@@ -460,7 +480,7 @@ impl ContactSolver {
             if gap >= margin || gap < -2.0 * margin {
                 continue;
             }
-            if gap < 0.0 && !inside_tet(&p, bodies[b], bodies[b].surface().triangle_tets[t]) {
+            if gap < 0.0 && !inside_tet(&p, &bodies[b], bodies[b].surface().triangle_tets[t]) {
                 continue;
             }
             let tg = tangent_basis(&n);
@@ -490,10 +510,10 @@ impl ContactSolver {
 
     /// Replaces the detected contacts with `contacts` (for custom detection and
     /// benchmarks); `h` is the step size used by the following phases.
-    pub fn set_contacts(
+    pub fn set_contacts<B: BodyRef>(
         &mut self,
         contacts: &[Contact],
-        bodies: &[&DeformableBody],
+        bodies: &[B],
         h: f64,
     ) -> Result<()> {
         check_positive("h", h)?;
@@ -542,14 +562,14 @@ impl ContactSolver {
     }
 
     /// Phase 2: builds `H` and `W = Σ_b h² H_b A_b⁻¹ H_bᵀ` on the CPU.
-    pub fn build_compliance(&mut self, bodies: &[&DeformableBody]) -> Result<()> {
+    pub fn build_compliance<B: BodyRef>(&mut self, bodies: &[B]) -> Result<()> {
         self.build_compliance_with(bodies, None)
     }
 
     /// Phase 2 with an optional [`ComplianceBackend`] (the GPU) for `Factorized` bodies.
-    pub fn build_compliance_with(
+    pub fn build_compliance_with<B: BodyRef>(
         &mut self,
-        bodies: &[&DeformableBody],
+        bodies: &[B],
         mut backend: Option<&mut dyn ComplianceBackend>,
     ) -> Result<()> {
         let t0 = Instant::now();
@@ -577,7 +597,7 @@ impl ContactSolver {
             let dirs = [c.normal, c.tangents[0], c.tangents[1]];
             let nrows = self.rows[ci + 1] - r0;
             let mut push = |side: &ContactSide, sign: f64| {
-                let body = bodies[side.body];
+                let body: &DeformableBody = &bodies[side.body];
                 for k in 0..3 {
                     let (node, wgt) = (side.nodes[k] as usize, side.weights[k]);
                     if wgt == 0.0 || body.constraints()[node] != NodeConstraint::Free {
@@ -634,7 +654,7 @@ impl ContactSolver {
         Ok(())
     }
 
-    fn key(&self, c: &Contact, bodies: &[&DeformableBody]) -> ContactKey {
+    fn key<B: BodyRef>(&self, c: &Contact, bodies: &[B]) -> ContactKey {
         let other = match c.other {
             ContactOther::Tool(t) => t as u64,
             ContactOther::Body(s) => (1 << 62) | bodies[s.body].id(),
@@ -643,7 +663,7 @@ impl ContactSolver {
     }
 
     /// Phase 3: projected Gauss–Seidel on `W λ + δ₀`.
-    pub fn solve_lcp(&mut self, bodies: &[&DeformableBody]) -> LcpReport {
+    pub fn solve_lcp<B: BodyRef>(&mut self, bodies: &[B]) -> LcpReport {
         let t0 = Instant::now();
         let m = self.delta0.len();
         self.lambda.clear();
@@ -745,17 +765,13 @@ impl ContactSolver {
         h: f64,
     ) -> Result<()> {
         self.pass = 0;
-        {
-            let b: Vec<&DeformableBody> = bodies.iter().map(|b| &**b).collect();
-            let t: Vec<&RigidTool> = tools.iter().map(|t| &**t).collect();
-            self.detect(&b, &t, h)?;
-            if self.contacts.is_empty() {
-                self.clear_forces(tools);
-                return Ok(());
-            }
-            self.build_compliance(&b)?;
-            self.solve_lcp(&b);
+        self.detect_in(bodies, tools, h)?;
+        if self.contacts.is_empty() {
+            self.clear_forces(tools);
+            return Ok(());
         }
+        self.build_compliance(bodies)?;
+        self.solve_lcp(bodies);
         self.correct(bodies, tools)?;
         self.refine(bodies, tools, h)
     }
@@ -785,16 +801,12 @@ impl ContactSolver {
         let result = (|| {
             for pass in 1..self.settings.max_passes {
                 self.pass = pass;
-                {
-                    let b: Vec<&DeformableBody> = bodies.iter().map(|b| &**b).collect();
-                    let t: Vec<&RigidTool> = tools.iter().map(|t| &**t).collect();
-                    self.detect(&b, &t, h)?;
-                    if self.report.max_penetration <= self.settings.penetration_tolerance {
-                        break;
-                    }
-                    self.build_compliance(&b)?;
-                    self.solve_lcp(&b);
+                self.detect_in(bodies, tools, h)?;
+                if self.report.max_penetration <= self.settings.penetration_tolerance {
+                    break;
                 }
+                self.build_compliance(bodies)?;
+                self.solve_lcp(bodies);
                 self.correct(bodies, tools)?;
                 self.report.passes = pass + 1;
             }

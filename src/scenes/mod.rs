@@ -281,6 +281,7 @@ pub fn run_headless(
     }
     let mut c = contacts.clone();
     c.sort_unstable();
+    let band_steps = band.len().max(1) as f64;
     let summary = HeadlessSummary {
         steps,
         median_ms,
@@ -294,11 +295,11 @@ pub fn run_headless(
         tolerance,
         lens_center: (start, end),
         max_lens_speed,
-        mean_ms_50_90: band_sum.map(|x| x / band.len().max(1) as f64),
-        cg_iterations_50_90: band_cg as f64 / band.len().max(1) as f64,
+        mean_ms_50_90: band_sum.map(|x| x / band_steps),
+        cg_iterations_50_90: band_cg as f64 / band_steps,
         lcp_50_90: (
-            band_lcp.0 as f64 / band.len().max(1) as f64,
-            band_lcp.1 as f64 / band.len().max(1) as f64,
+            band_lcp.0 as f64 / band_steps,
+            band_lcp.1 as f64 / band_steps,
         ),
         median_ms_50_90: (!band.is_empty()).then(|| med(&mut band)),
     };

@@ -125,18 +125,22 @@ struct Done {
 /// Factorizations running in background workers, all bodies together.
 static IN_FLIGHT: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
 
-/// How many background factorizations may run at once: one core is left to the
-/// stepping thread (at least one worker).
 /// Factorizers waiting for a background slot, oldest first.
 static WAITING: std::sync::Mutex<std::collections::VecDeque<u64>> =
     std::sync::Mutex::new(std::collections::VecDeque::new());
+/// Identity of each [`AsyncFactorizer`] in [`WAITING`].
 static NEXT_ID: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
 
+/// How many background factorizations may run at once: one core is left to the
+/// stepping thread (at least one worker). Asked of the OS once.
 fn max_in_flight() -> usize {
-    std::thread::available_parallelism()
-        .map(|n| n.get().saturating_sub(1))
-        .unwrap_or(1)
-        .max(1)
+    static LIMIT: std::sync::OnceLock<usize> = std::sync::OnceLock::new();
+    *LIMIT.get_or_init(|| {
+        std::thread::available_parallelism()
+            .map(|n| n.get().saturating_sub(1))
+            .unwrap_or(1)
+            .max(1)
+    })
 }
 
 /// Background `LDLᵀ` worker (see the module docs).
@@ -265,7 +269,7 @@ impl AsyncFactorizer {
                 }
                 return;
             }
-            if first && !waiting.is_empty() {
+            if waiting.front() == Some(&self.id) {
                 waiting.pop_front();
             }
         }
@@ -397,11 +401,12 @@ impl PreconditionerState {
         self.worker.as_ref()
     }
 
-    /// Factorizes `a` now, on this thread, for the kinds that keep a factor
-    /// (`Exact`, `Periodic`, `Async`); the rescue when CG fails to converge with
-    /// a factor the matrix has moved away from. Returns whether a factor was made.
+    /// Factorizes `a` now, on this thread, for the kinds whose factor lags the
+    /// matrix (`Periodic`, `Async`): the rescue when CG fails to converge with a
+    /// factor the matrix has moved away from. Returns whether a factor was made
+    /// (never for the other kinds, whose factor is already current or absent).
     pub fn refactor_now(&mut self, a: &BlockCsr, rotations: &[Mat3], step: u64) -> Result<bool> {
-        if self.state.is_none() || self.symbolic.is_none() {
+        if !self.kind.needs_rotations() || self.state.is_none() || self.symbolic.is_none() {
             return Ok(false);
         }
         self.factorize_now(a, rotations, step)?;
