@@ -7,9 +7,11 @@
 //!   periphery (smooth transition), inside the eye behind the incision, turned
 //!   so that its thin edge faces the slit (the nucleus leaves edge first).
 //! - **Vectis**: a rigid, spoon-like blade (closed triangle mesh) with friction
-//!   against the lens, cradling the lens's flat face and drawn out toward the
-//!   incision along [`ExtractionPath`], pressing lightly so friction carries the
-//!   lens along.
+//!   against the lens. Along [`ExtractionPath`] it meets the lens's rim on the
+//!   side away from the incision and pushes the lens edge first toward and into
+//!   the slit; with [`CataractParams::deliver`] on through it and out of the eye.
+//! - **Medium**: the viscoelastic and aqueous around the lens, as mass
+//!   damping of both bodies ([`CataractParams::medium_drag`]).
 //!
 //! Mesh sizes default to about the paper's (lens 1183 vertices / 5184 tets,
 //! eye ≈ 1200 / ≈ 3550). [`CataractParams::coarse`] gives a light version for
@@ -189,7 +191,7 @@ pub struct ExtractionPath {
 impl ExtractionPath {
     /// The default path for `p`: the blade faces the lens's rim from the side
     /// opposite the incision and pushes it toward and into the slit (0–8 s,
-    /// 7 mm); the lens moves about 3.8 mm toward the incision and its rim is
+    /// 7 mm); the lens moves 3.3–3.8 mm toward the incision and its rim is
     /// pressed into the slit, deforming the sclera around it.
     ///
     /// With [`CataractParams::deliver`] the blade goes on (8–14 s, 9 mm more)
