@@ -15,7 +15,8 @@
 //!
 //! Headless, it prints the median time per phase, the steps per second, the
 //! contact counts and CG iterations, and exits nonzero on NaN, on a pipeline
-//! error or on a penetration beyond 1 % of the lens's smallest edge.
+//! error or on a penetration beyond 1 % of the lens's smallest edge (into
+//! the vectis or between lens and sclera, checked at the end of every step).
 //!
 //! In the window: the lens is coloured by stiffness (red nucleus), the eye is
 //! translucent; the panel switches effects, preconditioner, refresh policy and
@@ -149,6 +150,12 @@ fn headless(args: &Args, params: &CataractParams, config: SoftTissueConfig) -> E
                 Some(ms) => println!("steps/s over steps with 50-90 contacts: {:.1}", 1e3 / ms),
                 None => println!("no step had 50-90 contacts"),
             }
+            if let (n, Some(ms)) = s.jam {
+                println!(
+                    "steps with more than 90 contacts (lens jammed in the slit): {n}, {:.1} steps/s",
+                    1e3 / ms
+                );
+            }
             println!("contacts: median {}, max {}", s.contacts.0, s.contacts.1);
             println!(
                 "CG iterations per step (both bodies): {:.2} (steps with 50-90 contacts: {:.2})",
@@ -167,8 +174,8 @@ fn headless(args: &Args, params: &CataractParams, config: SoftTissueConfig) -> E
                 s.max_lens_speed * 1e3
             );
             println!(
-                "max penetration {:.2e} m (tolerance {:.2e} m)",
-                s.max_penetration, s.tolerance
+                "max penetration at step end {:.2e} m, lens-sclera {:.2e} m (tolerance {:.2e} m)",
+                s.max_penetration, s.max_tissue_penetration, s.tolerance
             );
             if s.max_penetration > s.tolerance {
                 eprintln!("penetration beyond tolerance");

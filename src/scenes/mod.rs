@@ -122,8 +122,12 @@ pub struct HeadlessSummary {
     pub contacts: (usize, usize),
     /// Mean CG iterations per step (both bodies).
     pub cg_iterations: f64,
-    /// Largest penetration seen at the end of a step, metres.
+    /// Largest penetration seen at the end of a step, metres: surface vertices
+    /// against the vectis and against the other body's surface (lens–sclera),
+    /// found by a detection pass over the final positions of every step.
     pub max_penetration: f64,
+    /// The part of [`Self::max_penetration`] between the two bodies (lens–sclera), metres.
+    pub max_tissue_penetration: f64,
     /// Penetration tolerance used (1 % of the smallest lens edge), metres.
     pub tolerance: f64,
     /// Lens centre at the start and at the end.
@@ -140,6 +144,9 @@ pub struct HeadlessSummary {
     pub cg_iterations_50_90: f64,
     /// Mean LCP sweeps and contact passes per step over the steps with 50–90 contacts.
     pub lcp_50_90: (f64, f64),
+    /// Steps with more than 90 contacts (the lens jammed in the slit), and their
+    /// median step time in ms, if any.
+    pub jam: (usize, Option<f64>),
 }
 
 /// Runs the cataract scene without a window for `steps` fixed steps and
@@ -178,6 +185,11 @@ pub fn run_headless(
             .map(|b| 0.01 * b.mesh().min_edge_length())
             .unwrap_or(0.0)
     };
+    // A detection pass of its own over each step's final positions: what the
+    // pipeline left penetrating, tools and bodies alike.
+    let mut checker = crate::contact::ContactSolver::new(cataract::contact_settings())?;
+    let mut jam = Vec::new();
+    let mut max_tissue: f64 = 0.0;
     let mut phases: [Vec<f64>; 8] = Default::default();
     let mut contacts = Vec::new();
     let mut band = Vec::new();
@@ -225,6 +237,9 @@ pub fn run_headless(
             p.push(x);
         }
         contacts.push(d.contacts);
+        if d.contacts > 90 {
+            jam.push(d.step_ms());
+        }
         if (50..=90).contains(&d.contacts) {
             band.push(d.step_ms());
             for (acc, x) in band_sum.iter_mut().zip(v) {
@@ -243,14 +258,13 @@ pub fn run_headless(
                 max_lens_speed = max_lens_speed.max(mean.norm());
             }
         }
-        // Penetration of lens and eye vertices into the vectis.
-        let world = app.world_mut();
-        let tools: Vec<crate::contact::RigidTool> = world
-            .query::<&Tool>()
-            .iter(world)
-            .map(|t| t.0.clone())
-            .collect();
-        for b in world.query::<&SoftBody>().iter(world) {
+        // Penetration left at the end of the step: into the vectis and between the bodies.
+        let mut tq = app.world_mut().query::<&Tool>();
+        let mut bq = app.world_mut().query::<&SoftBody>();
+        let world = app.world();
+        let tools: Vec<&crate::contact::RigidTool> = tq.iter(world).map(|t| &t.0).collect();
+        let bodies: Vec<&crate::body::DeformableBody> = bq.iter(world).map(|b| &b.0).collect();
+        for b in &bodies {
             if !b
                 .positions()
                 .iter()
@@ -258,12 +272,12 @@ pub fn run_headless(
             {
                 return Err(SoftTissueError::NonFinite("body positions"));
             }
-            for &v in &b.surface().vertices {
-                for t in &tools {
-                    if let Some(p) = t.proximity(&b.positions()[v], 1.0) {
-                        max_pen = max_pen.max(-p.distance);
-                    }
-                }
+        }
+        checker.detect(&bodies, &tools, h)?;
+        for c in checker.contacts() {
+            max_pen = max_pen.max(-c.gap);
+            if matches!(c.other, crate::contact::ContactOther::Body(_)) {
+                max_tissue = max_tissue.max(-c.gap);
             }
         }
     }
@@ -302,6 +316,8 @@ pub fn run_headless(
             band_lcp.1 as f64 / band_steps,
         ),
         median_ms_50_90: (!band.is_empty()).then(|| med(&mut band)),
+        max_tissue_penetration: max_tissue,
+        jam: (jam.len(), (!jam.is_empty()).then(|| med(&mut jam))),
     };
     Ok(summary)
 }
