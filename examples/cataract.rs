@@ -62,14 +62,17 @@ fn parse() -> Result<Args, String> {
                 .cloned()
                 .ok_or(format!("{} needs a value", args[i]))
         };
+        let number = || {
+            value()?
+                .parse::<u64>()
+                .map_err(|_| format!("{} needs a whole number", args[i]))
+        };
         match args[i].as_str() {
             "--headless" => a.headless = true,
             "--coarse" => a.coarse = true,
             "--deliver" => a.deliver = true,
             "--steps" => {
-                a.steps = value()?
-                    .parse()
-                    .map_err(|_| "--steps needs a number".to_string())?;
+                a.steps = number()? as usize;
                 i += 1;
             }
             "--preconditioner" => {
@@ -88,19 +91,11 @@ fn parse() -> Result<Args, String> {
                 i += 1;
             }
             "--reuse" => {
-                a.reuse = Some(
-                    value()?
-                        .parse()
-                        .map_err(|_| "--reuse needs a number of steps".to_string())?,
-                );
+                a.reuse = Some(number()?);
                 i += 1;
             }
             "--passes" => {
-                a.passes = Some(
-                    value()?
-                        .parse()
-                        .map_err(|_| "--passes needs a number".to_string())?,
-                );
+                a.passes = Some(number()? as usize);
                 i += 1;
             }
             "--compliance" => {

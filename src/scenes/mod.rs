@@ -170,21 +170,22 @@ pub fn run_headless(
         Duration::from_secs_f64(h),
     ));
     app.update();
-    let lens_center = |app: &mut App| {
-        let mut q = app.world_mut().query_filtered::<&SoftBody, With<Lens>>();
-        q.iter(app.world())
-            .next()
-            .map(|b| b.positions().iter().sum::<crate::math::Vec3>() / b.num_nodes() as f64)
-    };
-    let start =
-        lens_center(&mut app).ok_or(SoftTissueError::EmptyMesh("cataract scene did not spawn"))?;
-    let tolerance = {
-        let mut q = app.world_mut().query_filtered::<&SoftBody, With<Lens>>();
-        q.iter(app.world())
-            .next()
-            .map(|b| 0.01 * b.mesh().min_edge_length())
-            .unwrap_or(0.0)
-    };
+    // Queries made once, read after every step.
+    let mut lens_q = app.world_mut().query_filtered::<&SoftBody, With<Lens>>();
+    let mut tool_q = app.world_mut().query::<&Tool>();
+    let mut body_q = app.world_mut().query::<&SoftBody>();
+    let centre =
+        |b: &SoftBody| b.positions().iter().sum::<crate::math::Vec3>() / b.num_nodes() as f64;
+    let start = lens_q
+        .iter(app.world())
+        .next()
+        .map(centre)
+        .ok_or(SoftTissueError::EmptyMesh("cataract scene did not spawn"))?;
+    let tolerance = lens_q
+        .iter(app.world())
+        .next()
+        .map(|b| 0.01 * b.mesh().min_edge_length())
+        .unwrap_or(0.0);
     // A detection pass of its own over each step's final positions: what the
     // pipeline left penetrating, tools and bodies alike.
     let mut checker = crate::contact::ContactSolver::new(cataract::contact_settings())?;
@@ -250,20 +251,15 @@ pub fn run_headless(
             band_lcp.1 += d.contact_passes;
         }
         cg += d.cg_iterations;
-        {
-            let mut q = app.world_mut().query_filtered::<&SoftBody, With<Lens>>();
-            if let Some(b) = q.iter(app.world()).next() {
-                let v = b.velocities();
-                let mean = v.iter().sum::<crate::math::Vec3>() / v.len().max(1) as f64;
-                max_lens_speed = max_lens_speed.max(mean.norm());
-            }
+        let world = app.world();
+        if let Some(b) = lens_q.iter(world).next() {
+            let v = b.velocities();
+            let mean = v.iter().sum::<crate::math::Vec3>() / v.len().max(1) as f64;
+            max_lens_speed = max_lens_speed.max(mean.norm());
         }
         // Penetration left at the end of the step: into the vectis and between the bodies.
-        let mut tq = app.world_mut().query::<&Tool>();
-        let mut bq = app.world_mut().query::<&SoftBody>();
-        let world = app.world();
-        let tools: Vec<&crate::contact::RigidTool> = tq.iter(world).map(|t| &t.0).collect();
-        let bodies: Vec<&crate::body::DeformableBody> = bq.iter(world).map(|b| &b.0).collect();
+        let tools: Vec<&crate::contact::RigidTool> = tool_q.iter(world).map(|t| &t.0).collect();
+        let bodies: Vec<&crate::body::DeformableBody> = body_q.iter(world).map(|b| &b.0).collect();
         for b in &bodies {
             if !b
                 .positions()
@@ -281,7 +277,7 @@ pub fn run_headless(
             }
         }
     }
-    let end = lens_center(&mut app).unwrap_or(start);
+    let end = lens_q.iter(app.world()).next().map(centre).unwrap_or(start);
     let med = |v: &mut Vec<f64>| {
         if v.is_empty() {
             return f64::NAN;
@@ -293,7 +289,7 @@ pub fn run_headless(
     for (m, p) in median_ms.iter_mut().zip(phases.iter_mut()) {
         *m = med(p);
     }
-    let mut c = contacts.clone();
+    let mut c = contacts;
     c.sort_unstable();
     let band_steps = band.len().max(1) as f64;
     let summary = HeadlessSummary {
