@@ -11,7 +11,8 @@
 //! (light meshes), `--preconditioner jacobi|exact|periodicN|async`,
 //! `--compliance factorized|exact|diagonal|rest|dense`, `--reuse N` (steps a
 //! factor serves the compliance, `ContactSettings::factor_reuse`), `--passes N`
-//! (contact passes per step) — accuracy against time.
+//! (contact passes per step), `--no-predict` (detect at the free motion, not
+//! at the predicted positions, `ContactSettings::predict`) — accuracy against time.
 //!
 //! Headless, it prints the median time per phase, the steps per second, the
 //! contact counts and CG iterations, and exits nonzero on NaN, on a pipeline
@@ -41,6 +42,7 @@ struct Args {
     compliance: ComplianceMode,
     reuse: Option<u64>,
     passes: Option<usize>,
+    predict: bool,
 }
 
 fn parse() -> Result<Args, String> {
@@ -53,6 +55,7 @@ fn parse() -> Result<Args, String> {
         compliance: ComplianceMode::Factorized,
         reuse: None,
         passes: None,
+        predict: true,
     };
     let args: Vec<String> = std::env::args().skip(1).collect();
     let mut i = 0;
@@ -71,6 +74,7 @@ fn parse() -> Result<Args, String> {
             "--headless" => a.headless = true,
             "--coarse" => a.coarse = true,
             "--deliver" => a.deliver = true,
+            "--no-predict" => a.predict = false,
             "--steps" => {
                 a.steps = number()? as usize;
                 i += 1;
@@ -213,6 +217,7 @@ fn main() -> ExitCode {
     if let Some(r) = args.reuse {
         config.contact.factor_reuse = r;
     }
+    config.contact.predict = args.predict;
     if let Some(p) = args.passes {
         config.contact.max_passes = p.max(1);
     }
@@ -527,6 +532,10 @@ mod viewer {
                         config.compliance = *m;
                     }
                 }
+                ui.checkbox(
+                    &mut config.contact.predict,
+                    "detect at predicted positions (fewer passes)",
+                );
                 ui.separator();
                 let col = |k: usize| s.history.iter().map(|r| r[k]).collect::<Vec<f32>>();
                 chart(ui, "FPS", &[("fps", col(0), egui::Color32::LIGHT_GREEN)]);

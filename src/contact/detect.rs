@@ -6,15 +6,21 @@
 //!   tool's outward normal.
 //! - **Body – body**: the surface vertices of one body against the surface
 //!   triangles of the other, in both directions. Each body keeps a bounding
-//!   volume hierarchy of its surface triangles, built once and refitted every
-//!   step. The closest triangle gives barycentric weights, the normal is the
-//!   triangle's outward normal.
+//!   volume hierarchy of its surface triangles and one of its tetrahedra, both
+//!   built once and refitted every pass. The closest triangle gives barycentric
+//!   weights. Whether a vertex is *inside* the other body is decided by the
+//!   tetrahedra (a point-in-tet query), never by the side of a triangle's plane
+//!   alone: near a cut (an incision's wall) an outside vertex can lie behind the
+//!   closest triangle's plane, and a vertex that went deeper than the alarm
+//!   distance in one step has no triangle near it at all. An outside vertex
+//!   within the alarm distance gets the triangle's outward normal; an inside
+//!   vertex is pushed toward the closest surface point, however deep it is.
 //!
 //! Self-collision is out of scope.
 
 use crate::math::Vec3;
 
-/// A node of [`TriangleBvh`].
+/// A node of [`Bvh`].
 #[derive(Debug, Clone, Copy, PartialEq)]
 struct BvhNode {
     min: Vec3,
@@ -25,10 +31,11 @@ struct BvhNode {
     leaf: bool,
 }
 
-/// Bounding volume hierarchy over surface triangles; the tree is built once,
-/// boxes are refitted from current positions.
+/// Bounding volume hierarchy over mesh primitives (surface triangles or
+/// tetrahedra, given as vertex-index arrays); the tree is built once, boxes are
+/// refitted from current positions.
 #[derive(Debug, Clone, Default)]
-pub struct TriangleBvh {
+pub struct Bvh {
     nodes: Vec<BvhNode>,
     order: Vec<u32>,
     stack: Vec<u32>,
@@ -36,21 +43,21 @@ pub struct TriangleBvh {
 
 const LEAF: usize = 4;
 
-impl TriangleBvh {
-    /// Builds the tree over `tris` (volume-vertex indices) at positions `x`.
-    pub fn new(tris: &[[usize; 3]], x: &[Vec3]) -> Self {
+impl Bvh {
+    /// Builds the tree over `prims` (vertex indices into `x`) at positions `x`.
+    pub fn new<const N: usize>(prims: &[[usize; N]], x: &[Vec3]) -> Self {
         let mut bvh = Self {
-            order: (0..tris.len() as u32).collect(),
+            order: (0..prims.len() as u32).collect(),
             ..Default::default()
         };
-        if !tris.is_empty() {
-            let centroids: Vec<Vec3> = tris
+        if !prims.is_empty() {
+            let centroids: Vec<Vec3> = prims
                 .iter()
-                .map(|t| (x[t[0]] + x[t[1]] + x[t[2]]) / 3.0)
+                .map(|t| t.iter().map(|&v| x[v]).sum::<Vec3>() / N as f64)
                 .collect();
-            let n = tris.len();
+            let n = prims.len();
             bvh.build(&centroids, 0, n);
-            bvh.refit(tris, x);
+            bvh.refit(prims, x);
         }
         bvh
     }
@@ -90,13 +97,13 @@ impl TriangleBvh {
     }
 
     /// Recomputes every box from positions `x` (children before parents).
-    pub fn refit(&mut self, tris: &[[usize; 3]], x: &[Vec3]) {
+    pub fn refit<const N: usize>(&mut self, prims: &[[usize; N]], x: &[Vec3]) {
         for i in (0..self.nodes.len()).rev() {
             let n = self.nodes[i];
             let (mut lo, mut hi) = (Vec3::repeat(f64::INFINITY), Vec3::repeat(f64::NEG_INFINITY));
             if n.leaf {
                 for &t in &self.order[n.a as usize..(n.a + n.b) as usize] {
-                    for &v in &tris[t as usize] {
+                    for &v in &prims[t as usize] {
                         lo = lo.inf(&x[v]);
                         hi = hi.sup(&x[v]);
                     }
@@ -116,10 +123,18 @@ impl TriangleBvh {
         self.nodes.first().map(|n| (n.min, n.max))
     }
 
-    /// Calls `f(triangle)` for every triangle whose box is within `radius` of `p`.
+    /// Calls `f(primitive)` for every primitive whose box is within `radius` of `p`.
     pub fn query(&mut self, p: &Vec3, radius: f64, mut f: impl FnMut(usize)) {
+        self.query_until(p, radius, |t| {
+            f(t);
+            false
+        });
+    }
+
+    /// [`Self::query`] that stops as soon as `f` returns `true`; returns whether it did.
+    pub fn query_until(&mut self, p: &Vec3, radius: f64, mut f: impl FnMut(usize) -> bool) -> bool {
         if self.nodes.is_empty() {
-            return;
+            return false;
         }
         self.stack.clear();
         self.stack.push(0);
@@ -131,13 +146,59 @@ impl TriangleBvh {
             }
             if n.leaf {
                 for &t in &self.order[n.a as usize..(n.a + n.b) as usize] {
-                    f(t as usize);
+                    if f(t as usize) {
+                        return true;
+                    }
                 }
             } else {
                 self.stack.push(n.a);
                 self.stack.push(n.b);
             }
         }
+        false
+    }
+}
+
+/// Where the segment `o → p` crosses triangle `(a, b, c)`: the fraction `t`
+/// along the segment and the crossing point's barycentric weights; `None` when
+/// it misses or runs parallel to the triangle's plane.
+pub fn segment_triangle(
+    o: &Vec3,
+    p: &Vec3,
+    a: &Vec3,
+    b: &Vec3,
+    c: &Vec3,
+) -> Option<(f64, [f64; 3])> {
+    let d = p - o;
+    let (e1, e2) = (b - a, c - a);
+    let q = d.cross(&e2);
+    let det = e1.dot(&q);
+    if det.abs() <= 1e-30 * e1.norm_squared() * d.norm() {
+        return None;
+    }
+    let s = o - a;
+    let u = s.dot(&q) / det;
+    let r = s.cross(&e1);
+    let v = d.dot(&r) / det;
+    let t = e2.dot(&r) / det;
+    let eps = 1e-9;
+    (u >= -eps && v >= -eps && u + v <= 1.0 + eps && (-eps..=1.0 + eps).contains(&t))
+        .then_some((t, [1.0 - u - v, u, v]))
+}
+
+/// Whether `p` lies in the tetrahedron with corners `x` (a closed test with a
+/// relative tolerance of 1e-9 in barycentric coordinates; false for a
+/// degenerate tetrahedron).
+pub fn point_in_tet(p: &Vec3, x: [Vec3; 4]) -> bool {
+    let [a, b, c, d] = x;
+    let m = crate::math::Mat3::from_columns(&[b - a, c - a, d - a]);
+    match m.try_inverse() {
+        Some(inv) => {
+            let l = inv * (p - a);
+            let eps = -1e-9;
+            l.x >= eps && l.y >= eps && l.z >= eps && l.x + l.y + l.z <= 1.0 - eps
+        }
+        None => false,
     }
 }
 

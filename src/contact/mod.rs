@@ -5,8 +5,12 @@
 //!
 //! 1. **Detect** ([`ContactSolver::detect`], [`detect`]): surface vertices
 //!    against rigid [`RigidTool`]s (parry3d-f64) and against the surface triangles of
-//!    other bodies (refitted BVH, both directions). Each contact has a normal,
-//!    two tangents and a gap `δ₀` measured at the free-motion positions.
+//!    other bodies (refitted BVH, both directions; inside or not is decided by
+//!    the other body's tetrahedra, at any depth). Each contact has a normal,
+//!    two tangents and a gap `δ₀` at the free-motion positions. With
+//!    [`ContactSettings::predict`] (the default) the first pass looks for
+//!    contacts at the free motion plus the previous step's correction, where
+//!    held contacts will be, and linearizes its gaps back to the free motion.
 //!    Self-collision is out of scope.
 //! 2. **Compliance** ([`ContactSolver::build_compliance`]): the constraint
 //!    Jacobian `H` — one normal row per contact, plus two tangent rows when
@@ -43,7 +47,7 @@ impl<B: std::ops::Deref<Target = DeformableBody>> BodyRef for B {}
 trait ToolRef: std::ops::Deref<Target = RigidTool> {}
 impl<T: std::ops::Deref<Target = RigidTool>> ToolRef for T {}
 pub use compliance::{BodyCompliance, ComplianceBackend, ComplianceMode, JacEntry};
-use detect::{TriangleBvh, boxes_overlap, closest_point_on_triangle};
+use detect::{Bvh, boxes_overlap, closest_point_on_triangle, point_in_tet, segment_triangle};
 pub use lcp::{LcpReport, LcpSettings};
 pub use tool::{Pose, RigidTool, ToolShape};
 
@@ -76,6 +80,17 @@ pub struct ContactSettings {
     /// current stiffness as the tissue deforms. Applies to bodies whose
     /// preconditioner warps (`Periodic`, `Async`).
     pub factor_reuse: u64,
+    /// Detect the first pass where the contacts will be, not at the free
+    /// motion: each body's free-motion positions plus its previous step's total
+    /// correction. Tissue held against a surface springs back in free motion
+    /// (in the cataract scene's slit by up to 0.5 mm a step, half the sclera's
+    /// thickness) and the correction pushes it out again; detected at the
+    /// free motion, such a vertex is deep inside the other body, where the
+    /// closest surface point may lie on its far side. At the predicted positions
+    /// held contacts sit near their surface, and the linearized gaps account
+    /// for the shift exactly (`δ₀ = gap − H·shift`), so the LCP solves the
+    /// same problem at a better-chosen linearization point. On by default.
+    pub predict: bool,
 }
 
 impl Default for ContactSettings {
@@ -89,6 +104,7 @@ impl Default for ContactSettings {
             max_passes: 3,
             penetration_tolerance: 1e-6,
             factor_reuse: 0,
+            predict: true,
         }
     }
 }
@@ -164,9 +180,13 @@ pub struct Contact {
     pub normal: Vec3,
     /// Unit tangents completing the frame.
     pub tangents: [Vec3; 2],
-    /// Gap `δ₀` at free motion (negative when penetrating).
+    /// Gap where the contact was detected, negative when penetrating: at the
+    /// free motion, or in a predicted first pass ([`ContactSettings::predict`])
+    /// at the predicted positions, and the LCP's `δ₀` is then the gap less the
+    /// predicted shift along the normal.
     pub gap: f64,
-    /// Tangential relative displacement during the step at free motion.
+    /// Tangential relative displacement during the step, where the contact
+    /// was detected (see [`Self::gap`]).
     pub slip: [f64; 2],
     /// Friction coefficient.
     pub mu: f64,
@@ -207,16 +227,39 @@ pub struct ContactReport {
     pub passes: usize,
     /// Deepest penetration found by the last detection, metres (0 if none).
     pub max_penetration: f64,
+    /// Deepest penetration found by the first detection of the step, metres:
+    /// how far inside the free motion (or, with [`ContactSettings::predict`],
+    /// the predicted positions) put a vertex, i.e. how far from its solution
+    /// the first pass linearizes.
+    pub first_penetration: f64,
 }
 
 #[derive(Debug, Default)]
 struct BodySlot {
     id: u64,
     compliance: BodyCompliance,
-    bvh: Option<TriangleBvh>,
+    bvh: Option<Bvh>,
+    tet_bvh: Option<Bvh>,
     tris: Vec<[usize; 3]>,
     entries: Vec<JacEntry>,
     dx: Vec<Vec3>,
+    /// Positions detection reads: the body's, plus `shift` in a predicted pass.
+    xp: Vec<Vec3>,
+    /// The previous step's total correction, the prediction of this step's.
+    shift: Vec<Vec3>,
+    /// Whether this step's first pass detects at predicted positions.
+    shifted: bool,
+    /// Per node, how much farther than the alarm distance this pass searches
+    /// (the length of its predicted shift, zero when not shifted).
+    extra: Vec<f64>,
+    /// The largest of `extra`.
+    max_extra: f64,
+    /// This step's corrections so far (all passes).
+    acc: Vec<Vec3>,
+    /// Whether `acc` holds a correction.
+    has_acc: bool,
+    /// The detection count at which `acc` was started.
+    acc_step: u64,
     aabb: (Vec3, Vec3),
     mode: ComplianceMode,
 }
@@ -240,6 +283,8 @@ pub struct ContactSolver {
     report: ContactReport,
     h: f64,
     pass: usize,
+    /// First-pass detections so far.
+    detections: u64,
 }
 
 /// Two unit tangents completing the unit normal `n` to an orthonormal frame.
@@ -320,6 +365,10 @@ impl ContactSolver {
 
     fn prepare_slots<B: BodyRef>(&mut self, bodies: &[B]) {
         self.slots.resize_with(bodies.len(), BodySlot::default);
+        let predict = self.settings.predict && self.pass == 0;
+        if self.pass == 0 {
+            self.detections += 1;
+        }
         for (slot, b) in self.slots.iter_mut().zip(bodies) {
             if slot.id != b.id() {
                 *slot = BodySlot {
@@ -329,17 +378,48 @@ impl ContactSolver {
                     ..Default::default()
                 };
             }
+            let x = b.positions();
+            if self.pass == 0 {
+                // The last step's correction becomes this step's prediction
+                // (only the step just before: a body that was left alone, or a
+                // pipeline that skipped steps, predicts nothing).
+                std::mem::swap(&mut slot.shift, &mut slot.acc);
+                slot.shifted = predict
+                    && slot.has_acc
+                    && slot.acc_step + 1 == self.detections
+                    && slot.shift.len() == x.len();
+                slot.has_acc = false;
+                slot.acc_step = self.detections;
+                slot.acc.clear();
+                slot.acc.resize(x.len(), Vec3::zeros());
+            }
+            slot.xp.clear();
+            slot.extra.clear();
+            if slot.shifted && self.pass == 0 {
+                slot.xp
+                    .extend(x.iter().zip(&slot.shift).map(|(p, s)| p + s));
+                // A vertex whose shift overshoots would leave the alarm band of
+                // a contact it still has at the free motion: search as much
+                // farther as it was shifted.
+                slot.extra.extend(slot.shift.iter().map(|s| s.norm()));
+            } else {
+                slot.xp.extend_from_slice(x);
+                slot.extra.resize(x.len(), 0.0);
+            }
+            slot.max_extra = slot.extra.iter().copied().fold(0.0, f64::max);
             let mut lo = Vec3::repeat(f64::INFINITY);
             let mut hi = Vec3::repeat(f64::NEG_INFINITY);
             for &v in &b.surface().vertices {
-                lo = lo.inf(&b.positions()[v]);
-                hi = hi.sup(&b.positions()[v]);
+                lo = lo.inf(&slot.xp[v]);
+                hi = hi.sup(&slot.xp[v]);
             }
             slot.aabb = (lo, hi);
         }
     }
 
-    /// Phase 1: finds contacts at the bodies' free-motion positions.
+    /// Phase 1: finds contacts at the bodies' free-motion positions (in a
+    /// step's first pass, with [`ContactSettings::predict`], at the predicted
+    /// ones; the gaps `δ₀` are those of the free motion either way).
     pub fn detect(
         &mut self,
         bodies: &[&DeformableBody],
@@ -369,11 +449,12 @@ impl ContactSolver {
         self.prepare_slots(bodies);
         let margin = self.settings.alarm_distance;
         for (bi, body) in bodies.iter().enumerate() {
-            let x = body.positions();
+            let x = &self.slots[bi].xp;
             let x0 = body.start_positions();
             let fixed = body.constraints();
+            let extra = &self.slots[bi].extra;
             for (ti, tool) in tools.iter().enumerate() {
-                let tb = tool.aabb(margin);
+                let tb = tool.aabb(margin + self.slots[bi].max_extra);
                 if !boxes_overlap(&self.slots[bi].aabb, &tb, 0.0) {
                     continue;
                 }
@@ -383,11 +464,12 @@ impl ContactSolver {
                         continue;
                     }
                     self.report.pairs_tested += 1;
+                    let band = margin + extra[v];
                     // Search deep enough to find the surface from anywhere inside the tool.
-                    let Some(prox) = tool.proximity(&p, margin + tool.inner_radius()) else {
+                    let Some(prox) = tool.proximity(&p, band + tool.inner_radius()) else {
                         continue;
                     };
-                    if prox.distance >= margin {
+                    if prox.distance >= band {
                         continue;
                     }
                     let t = tangent_basis(&prox.normal);
@@ -413,14 +495,16 @@ impl ContactSolver {
         // Deformable against deformable, both directions.
         for a in 0..bodies.len() {
             for b in 0..bodies.len() {
-                if a == b || !boxes_overlap(&self.slots[a].aabb, &self.slots[b].aabb, margin) {
+                let band = margin + self.slots[a].max_extra;
+                if a == b || !boxes_overlap(&self.slots[a].aabb, &self.slots[b].aabb, band) {
                     continue;
                 }
                 let slot_b = &mut self.slots[b];
-                let bvh = slot_b
-                    .bvh
-                    .get_or_insert_with(|| TriangleBvh::new(&slot_b.tris, bodies[b].positions()));
-                bvh.refit(&slot_b.tris, bodies[b].positions());
+                let (xb, tets) = (&slot_b.xp, bodies[b].mesh().tets());
+                let bvh = slot_b.bvh.get_or_insert_with(|| Bvh::new(&slot_b.tris, xb));
+                bvh.refit(&slot_b.tris, xb);
+                let tet_bvh = slot_b.tet_bvh.get_or_insert_with(|| Bvh::new(tets, xb));
+                tet_bvh.refit(tets, xb);
                 self.vertex_triangle(bodies, a, b, margin);
             }
         }
@@ -433,56 +517,124 @@ impl ContactSolver {
         self.report.max_penetration = self.contacts.iter().map(|c| -c.gap).fold(0.0, f64::max);
         if self.pass == 0 {
             self.report.contacts = self.contacts.len();
+            self.report.first_penetration = self.report.max_penetration;
         }
         self.report.detect += t0.elapsed().as_secs_f64();
         Ok(())
     }
 
     fn vertex_triangle<B: BodyRef>(&mut self, bodies: &[B], a: usize, b: usize, margin: f64) {
-        let (xa, xb) = (bodies[a].positions(), bodies[b].positions());
         let (sa, sb) = (bodies[a].start_positions(), bodies[b].start_positions());
+        let tets = bodies[b].mesh().tets();
         let mu = self.settings.body_friction;
+        let xa = std::mem::take(&mut self.slots[a].xp);
+        let extra = std::mem::take(&mut self.slots[a].extra);
+        let max_extra = self.slots[a].max_extra;
         let slot_b = &mut self.slots[b];
-        let Some(bvh) = slot_b.bvh.as_mut() else {
+        let xb = &slot_b.xp;
+        let (Some(bvh), Some(tet_bvh)) = (slot_b.bvh.as_mut(), slot_b.tet_bvh.as_mut()) else {
+            self.slots[a].xp = xa;
+            self.slots[a].extra = extra;
             return;
         };
         let tris = &slot_b.tris;
-        let bbox = slot_b_aabb(tris, xb, margin);
+        let bbox = slot_b_aabb(tris, xb, margin + max_extra);
+        // Far enough to reach the surface from anywhere inside `b`.
+        let reach = (bbox.1 - bbox.0).norm();
         for &v in &bodies[a].surface().vertices {
             let p = xa[v];
             if !boxes_overlap(&(p, p), &bbox, 0.0) {
                 continue;
             }
             let mut best: Option<(f64, usize, [f64; 3])> = None;
-            bvh.query(&p, margin, |t| {
+            let mut closest = |r: f64, best: &mut Option<(f64, usize, [f64; 3])>| {
+                bvh.query(&p, r, |t| {
+                    let [i, j, k] = tris[t];
+                    let w = closest_point_on_triangle(&p, &xb[i], &xb[j], &xb[k]);
+                    let q = xb[i] * w[0] + xb[j] * w[1] + xb[k] * w[2];
+                    let d2 = (p - q).norm_squared();
+                    if best.is_none_or(|bst| d2 < bst.0) {
+                        *best = Some((d2, t, w));
+                    }
+                });
+            };
+            let band = margin + extra[v];
+            closest(band, &mut best);
+            let face_normal = |t: usize| {
                 let [i, j, k] = tris[t];
-                let w = closest_point_on_triangle(&p, &xb[i], &xb[j], &xb[k]);
-                let q = xb[i] * w[0] + xb[j] * w[1] + xb[k] * w[2];
-                let d2 = (p - q).norm_squared();
-                if best.is_none_or(|bst| d2 < bst.0) {
-                    best = Some((d2, t, w));
+                (xb[j] - xb[i])
+                    .cross(&(xb[k] - xb[i]))
+                    .try_normalize(1e-300)
+            };
+            let point = |t: usize, w: [f64; 3]| {
+                let [i, j, k] = tris[t];
+                xb[i] * w[0] + xb[j] * w[1] + xb[k] * w[2]
+            };
+            let inside = tet_bvh.query_until(&p, 0.0, |e| point_in_tet(&p, tets[e].map(|i| xb[i])));
+            if inside {
+                // However deep: widen the search until the closest triangle
+                // found is provably the closest.
+                let mut r = band;
+                while best.is_none_or(|bst| bst.0 > r * r) && r < reach {
+                    r = (4.0 * r).min(reach);
+                    closest(r, &mut best);
                 }
-            });
-            let Some((_, t, w)) = best else { continue };
-            let [i, j, k] = tris[t];
-            let Some(n) = (xb[j] - xb[i])
-                .cross(&(xb[k] - xb[i]))
-                .try_normalize(1e-300)
-            else {
+            }
+            let Some((d2, mut t, mut w)) = best else {
                 continue;
             };
-            let q = xb[i] * w[0] + xb[j] * w[1] + xb[k] * w[2];
+            if !inside && d2 >= band * band {
+                continue;
+            }
+            let mut entry = None;
+            if inside && d2 > margin * margin {
+                // Deep: push it back out where it came in, not toward the
+                // closest surface point, which in a thin part (the sclera's
+                // lips) may lie on the far side. The vertex's start-of-step
+                // position, carried along with `b` near the closest point, is
+                // where it came from; the first face the path crosses inward is
+                // the entry.
+                let [i, j, k] = tris[t];
+                let carried =
+                    (xb[i] - sb[i]) * w[0] + (xb[j] - sb[j]) * w[1] + (xb[k] - sb[k]) * w[2];
+                let o = sa[v] + carried;
+                let mid = (o + p) * 0.5;
+                let mut first: Option<(f64, usize, [f64; 3])> = None;
+                bvh.query(&mid, 0.5 * (p - o).norm(), |f| {
+                    let [i, j, k] = tris[f];
+                    if let Some((s, wf)) = segment_triangle(&o, &p, &xb[i], &xb[j], &xb[k])
+                        && (xb[j] - xb[i]).cross(&(xb[k] - xb[i])).dot(&(p - o)) < 0.0
+                        && first.is_none_or(|fst| s < fst.0)
+                    {
+                        first = Some((s, f, wf));
+                    }
+                });
+                if let Some((_, f, wf)) = first {
+                    (t, w) = (f, wf);
+                    entry = face_normal(f);
+                }
+            }
+            let q = point(t, w);
+            // Outward from `b`: the entry face's normal for a deep vertex;
+            // otherwise the direction between the points (over a face's
+            // interior that is the face normal; over an edge or a corner only
+            // the direction is well defined, one of several equally close
+            // triangles is `t`), the face normal where the points touch.
+            let dir = if inside { q - p } else { p - q };
+            let n = match (entry, dir.try_normalize(1e-6 * margin)) {
+                (Some(nf), _) => nf,
+                (None, Some(d)) => d,
+                (None, None) => match face_normal(t) {
+                    Some(nf) => nf,
+                    None => continue,
+                },
+            };
             let gap = (p - q).dot(&n);
-            // Vertices deeper than twice the alarm distance are not trusted, and a
-            // negative gap counts only when the vertex really lies in the
-            // tetrahedron under the triangle: near a cut (an incision's wall) the
-            // closest triangle's plane can put an outside vertex "behind" it.
-            if gap >= margin || gap < -2.0 * margin {
-                continue;
-            }
-            if gap < 0.0 && !inside_tet(&p, &bodies[b], bodies[b].surface().triangle_tets[t]) {
-                continue;
-            }
+            // The side is the tetrahedra's call: a face plane alone misjudges
+            // vertices near a cut or an edge.
+            let gap = if inside { gap.min(0.0) } else { gap.max(0.0) };
+            let [i, j, k] = tris[t];
+            let q = point(t, w);
             let tg = tangent_basis(&n);
             let qs = sb[i] * w[0] + sb[j] * w[1] + sb[k] * w[2];
             let rel = (p - sa[v]) - (q - qs);
@@ -506,6 +658,8 @@ impl ContactSolver {
                 force: Vec3::zeros(),
             });
         }
+        self.slots[a].xp = xa;
+        self.slots[a].extra = extra;
     }
 
     /// Replaces the detected contacts with `contacts` (for custom detection and
@@ -626,6 +780,12 @@ impl ContactSolver {
                 continue;
             }
             slot.entries.sort_unstable_by_key(|e| (e.node, e.row));
+            if slot.shifted && self.pass == 0 {
+                // Detected at `x + shift`: the gaps at the free motion.
+                for e in &slot.entries {
+                    self.delta0[e.row as usize] -= e.h.dot(&slot.shift[e.node as usize]);
+                }
+            }
             slot.mode = body
                 .settings()
                 .compliance
@@ -731,6 +891,12 @@ impl ContactSolver {
                 return Err(SoftTissueError::NonFinite("contact correction"));
             }
             body.apply_correction(&slot.dx);
+            if slot.acc.len() == slot.dx.len() {
+                for (a, d) in slot.acc.iter_mut().zip(&slot.dx) {
+                    *a += d;
+                }
+                slot.has_acc = true;
+            }
         }
         for (ti, t) in tools.iter_mut().enumerate() {
             let (mut force, mut torque) = if self.pass == 0 {
@@ -782,6 +948,7 @@ impl ContactSolver {
         self.lambda.clear();
         for s in &mut self.slots {
             s.entries.clear();
+            s.has_acc = false;
         }
         for t in tools.iter_mut() {
             t.set_reaction(Vec3::zeros(), Vec3::zeros());
@@ -814,22 +981,6 @@ impl ContactSolver {
         })();
         self.pass = 0;
         result
-    }
-}
-
-/// Whether `p` lies in tetrahedron `t` of `body` at its current positions.
-fn inside_tet(p: &Vec3, body: &DeformableBody, t: usize) -> bool {
-    let tet = body.mesh().tets()[t];
-    let x = body.positions();
-    let [a, b, c, d] = tet.map(|v| x[v]);
-    let m = crate::math::Mat3::from_columns(&[b - a, c - a, d - a]);
-    match m.try_inverse() {
-        Some(inv) => {
-            let l = inv * (p - a);
-            let eps = -1e-9;
-            l.x >= eps && l.y >= eps && l.z >= eps && l.x + l.y + l.z <= 1.0 - eps
-        }
-        None => false,
     }
 }
 
