@@ -203,7 +203,9 @@ fn main() -> ExitCode {
     } else {
         CataractParams::default()
     };
-    params.deliver = args.deliver;
+    if args.deliver {
+        params = params.delivering();
+    }
     if args.steps == 0 {
         // The scripted path and one second more.
         args.steps = if args.deliver { 900 } else { 540 };

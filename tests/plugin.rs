@@ -281,7 +281,9 @@ fn coarse_cataract(
     bevy_soft_tissue::scenes::HeadlessSummary,
 ) {
     let mut params = bevy_soft_tissue::scenes::cataract::CataractParams::coarse();
-    params.deliver = deliver;
+    if deliver {
+        params = params.delivering();
+    }
     let config = SoftTissueConfig {
         timestep: 1.0 / 60.0,
         preconditioner: bevy_soft_tissue::solver::PreconditionerKind::Periodic { every: 4 },
