@@ -527,14 +527,10 @@ impl ContactSolver {
         let (sa, sb) = (bodies[a].start_positions(), bodies[b].start_positions());
         let tets = bodies[b].mesh().tets();
         let mu = self.settings.body_friction;
-        let xa = std::mem::take(&mut self.slots[a].xp);
-        let extra = std::mem::take(&mut self.slots[a].extra);
-        let max_extra = self.slots[a].max_extra;
-        let slot_b = &mut self.slots[b];
+        let (slot_a, slot_b) = slot_pair(&mut self.slots, a, b);
+        let (xa, extra, max_extra) = (&slot_a.xp, &slot_a.extra, slot_a.max_extra);
         let xb = &slot_b.xp;
         let (Some(bvh), Some(tet_bvh)) = (slot_b.bvh.as_mut(), slot_b.tet_bvh.as_mut()) else {
-            self.slots[a].xp = xa;
-            self.slots[a].extra = extra;
             return;
         };
         let tris = &slot_b.tris;
@@ -566,9 +562,9 @@ impl ContactSolver {
                     .cross(&(xb[k] - xb[i]))
                     .try_normalize(1e-300)
             };
-            let point = |t: usize, w: [f64; 3]| {
+            let point = |x: &[Vec3], t: usize, w: [f64; 3]| {
                 let [i, j, k] = tris[t];
-                xb[i] * w[0] + xb[j] * w[1] + xb[k] * w[2]
+                x[i] * w[0] + x[j] * w[1] + x[k] * w[2]
             };
             let inside = tet_bvh.query_until(&p, 0.0, |e| point_in_tet(&p, tets[e].map(|i| xb[i])));
             if inside {
@@ -594,10 +590,7 @@ impl ContactSolver {
                 // position, carried along with `b` near the closest point, is
                 // where it came from; the first face the path crosses inward is
                 // the entry.
-                let [i, j, k] = tris[t];
-                let carried =
-                    (xb[i] - sb[i]) * w[0] + (xb[j] - sb[j]) * w[1] + (xb[k] - sb[k]) * w[2];
-                let o = sa[v] + carried;
+                let o = sa[v] + point(xb, t, w) - point(sb, t, w);
                 let mid = (o + p) * 0.5;
                 let mut first: Option<(f64, usize, [f64; 3])> = None;
                 bvh.query(&mid, 0.5 * (p - o).norm(), |f| {
@@ -614,7 +607,7 @@ impl ContactSolver {
                     entry = face_normal(f);
                 }
             }
-            let q = point(t, w);
+            let q = point(xb, t, w);
             // Outward from `b`: the entry face's normal for a deep vertex;
             // otherwise the direction between the points (over a face's
             // interior that is the face normal; over an edge or a corner only
@@ -634,10 +627,8 @@ impl ContactSolver {
             // vertices near a cut or an edge.
             let gap = if inside { gap.min(0.0) } else { gap.max(0.0) };
             let [i, j, k] = tris[t];
-            let q = point(t, w);
             let tg = tangent_basis(&n);
-            let qs = sb[i] * w[0] + sb[j] * w[1] + sb[k] * w[2];
-            let rel = (p - sa[v]) - (q - qs);
+            let rel = (p - sa[v]) - (q - point(sb, t, w));
             self.contacts.push(Contact {
                 a: ContactSide {
                     body: a,
@@ -658,8 +649,6 @@ impl ContactSolver {
                 force: Vec3::zeros(),
             });
         }
-        self.slots[a].xp = xa;
-        self.slots[a].extra = extra;
     }
 
     /// Replaces the detected contacts with `contacts` (for custom detection and
@@ -981,6 +970,17 @@ impl ContactSolver {
         })();
         self.pass = 0;
         result
+    }
+}
+
+/// Slot `a` to read and slot `b` to update (`a ≠ b`).
+fn slot_pair(slots: &mut [BodySlot], a: usize, b: usize) -> (&BodySlot, &mut BodySlot) {
+    if a < b {
+        let (lo, hi) = slots.split_at_mut(b);
+        (&lo[a], &mut hi[0])
+    } else {
+        let (lo, hi) = slots.split_at_mut(a);
+        (&hi[0], &mut lo[b])
     }
 }
 
