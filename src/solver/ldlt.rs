@@ -347,7 +347,9 @@ impl LdltFactor {
 
     /// [`Self::backward`] with AVX2 and FMA: `L_pᵀ y_r` is three dot products;
     /// each column of `L_p` accumulates `L_p[:, k] ⊙ y_r` in its own vector over
-    /// the whole column of `L`, and the three are summed once per node.
+    /// the whole column of `L`, and the three are summed once per node. Even and
+    /// odd blocks accumulate into separate vectors, so consecutive fused
+    /// multiply-adds do not wait on each other's latency.
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2,fma")]
     fn backward_avx2(&self, y: &mut [Vec3]) {
@@ -355,13 +357,28 @@ impl LdltFactor {
         let s = &*self.symbolic;
         for j in (0..s.n).rev() {
             let mut acc = [_mm256_setzero_pd(); 3];
+            let mut acc2 = [_mm256_setzero_pd(); 3];
             let range = s.col_ptr[j]..s.col_ptr[j + 1];
-            for (lp, &r) in self.l[range.clone()].iter().zip(&s.row_idx[range]) {
-                let lc = x86::columns(lp);
-                let v = x86::load3(&y[r]);
+            let (l, rows) = (&self.l[range.clone()], &s.row_idx[range]);
+            let pairs = l.len() / 2;
+            for t in 0..pairs {
+                let (la, lb) = (x86::columns(&l[2 * t]), x86::columns(&l[2 * t + 1]));
+                let va = x86::load3(&y[rows[2 * t]]);
+                let vb = x86::load3(&y[rows[2 * t + 1]]);
+                for k in 0..3 {
+                    acc[k] = _mm256_fmadd_pd(la[k], va, acc[k]);
+                    acc2[k] = _mm256_fmadd_pd(lb[k], vb, acc2[k]);
+                }
+            }
+            if l.len() % 2 == 1 {
+                let lc = x86::columns(&l[l.len() - 1]);
+                let v = x86::load3(&y[rows[l.len() - 1]]);
                 for k in 0..3 {
                     acc[k] = _mm256_fmadd_pd(lc[k], v, acc[k]);
                 }
+            }
+            for k in 0..3 {
+                acc[k] = _mm256_add_pd(acc[k], acc2[k]);
             }
             let dots = Vec3::new(x86::sum(acc[0]), x86::sum(acc[1]), x86::sum(acc[2]));
             let rhs = y[j] - dots;
