@@ -23,6 +23,20 @@
 //!
 //! [`DeformableBody::step`] runs 1–3.
 //!
+//! ## Inverted elements
+//! An element pressed flat or through itself (`det F ≤ 0`) keeps the rotation
+//! it had at its last step with positive volume ([`RotationMethod::Polar`];
+//! the identity if it never had one). Its co-rotated force then pushes it back
+//! toward its own orientation, and its stiffness does not change between steps.
+//! Picking a fresh rotation for an inverted `F` (the polar decomposition's sign
+//! fix) is discontinuous: two nearly equal singular values swap roles and the
+//! rotation jumps by up to a half turn from one step to the next, so the
+//! matrix changes by as many rank-12 terms as elements flip and the conjugate
+//! gradient, preconditioned by the factor of a slightly older matrix, needs
+//! many more iterations. [`DeformableBody::elastic_forces`] and
+//! [`DeformableBody::elastic_energy`] have no history and use the sign-fixed
+//! polar rotation.
+//!
 //! ## Constrained nodes
 //! Fixed and kinematically driven nodes get a prescribed acceleration `a_i`.
 //! Their columns are moved to the right-hand side and their rows and columns
@@ -514,6 +528,8 @@ impl DeformableBody {
             let ve = e.nodes.map(|n| self.v[n]);
             let fx = e.deformation_gradient(&xe);
             let r = match method {
+                // Inverted or flat: keep the rotation the element had (see the module docs).
+                RotationMethod::Polar if fx.determinant() <= 0.0 => self.elem_rot[ei],
                 RotationMethod::Polar => polar_rotation_fast(&fx),
                 RotationMethod::Qr => e.rotation(method, &xe),
             };
