@@ -24,18 +24,21 @@
 //! [`DeformableBody::step`] runs 1–3.
 //!
 //! ## Inverted elements
-//! An element pressed flat or through itself (`det F ≤ 0`) keeps the rotation
-//! it had at its last step with positive volume ([`RotationMethod::Polar`];
-//! the identity if it never had one). Its co-rotated force then pushes it back
-//! toward its own orientation, and its stiffness does not change between steps.
-//! Picking a fresh rotation for an inverted `F` (the polar decomposition's sign
-//! fix) is discontinuous: two nearly equal singular values swap roles and the
-//! rotation jumps by up to a half turn from one step to the next, so the
-//! matrix changes by as many rank-12 terms as elements flip and the conjugate
-//! gradient, preconditioned by the factor of a slightly older matrix, needs
-//! many more iterations. [`DeformableBody::elastic_forces`] and
-//! [`DeformableBody::elastic_energy`] have no history and use the sign-fixed
-//! polar rotation.
+//! For an element pressed flat or through itself (`det F ≤ 0`) the rotation is
+//! not unique: any `U S Vᵀ` of the SVD `F = U Σ Vᵀ` with a sign matrix `S` that
+//! makes it proper is a candidate. [`RotationMethod::Polar`] takes the
+//! candidate nearest the element's rotation of the step before
+//! ([`crate::math::polar_rotation_near`]). The usual choice, flipping the
+//! direction of the smallest singular value, jumps by a half turn when two
+//! singular values cross: the matrix then changes by a rank-12 term per
+//! flipping element, and the conjugate gradient, preconditioned by the factor
+//! of a slightly older matrix, needs many more iterations (in the cataract
+//! scene's squeezed lens, up to the 200-iteration limit). Keeping the last
+//! rotation outright (no turning while inverted) is continuous too, but an
+//! element that turns while inverted then carries a wrong rotation and a large
+//! spurious force: it shot the coarse lens out of the eye at 87 mm/s.
+//! [`DeformableBody::elastic_forces`] and [`DeformableBody::elastic_energy`]
+//! have no history and use the plain sign fix.
 //!
 //! ## Constrained nodes
 //! Fixed and kinematically driven nodes get a prescribed acceleration `a_i`.
@@ -49,7 +52,7 @@ use crate::error::{Result, SoftTissueError, check_positive};
 use crate::fem::assembly::{BlockCsr, BlockPattern};
 use crate::fem::{Element, RotationMethod};
 use crate::material::TissueMaterial;
-use crate::math::{Mat3, Vec3, polar_rotation_fast};
+use crate::math::{Mat3, Vec3, polar_rotation_fast, polar_rotation_near};
 use crate::mesh::{Surface, TetMesh};
 use crate::solver::cg::{self, CgReport, CgScratch, CgSettings};
 use crate::solver::{PreconditionerKind, PreconditionerState, PreconditionerStats};
@@ -528,9 +531,8 @@ impl DeformableBody {
             let ve = e.nodes.map(|n| self.v[n]);
             let fx = e.deformation_gradient(&xe);
             let r = match method {
-                // Inverted or flat: keep the rotation the element had (see the module docs).
-                RotationMethod::Polar if fx.determinant() <= 0.0 => self.elem_rot[ei],
-                RotationMethod::Polar => polar_rotation_fast(&fx),
+                // Flat or inverted: the candidate nearest the last rotation (module docs).
+                RotationMethod::Polar => polar_rotation_near(&fx, &self.elem_rot[ei]),
                 RotationMethod::Qr => e.rotation(method, &xe),
             };
             self.elem_rot[ei] = r;

@@ -45,6 +45,57 @@ pub fn polar_rotation(f: &Mat3) -> Mat3 {
     r
 }
 
+/// The proper rotation of an inverted or flat `F` that is closest to `prev`
+/// (largest `tr(prevᵀ R)`), among the rotations `U S Vᵀ` of its SVD
+/// `F = U Σ Vᵀ` whose sign matrix `S` makes `det R = 1`; [`polar_rotation_fast`]
+/// where `det F` is safely positive (the rotation is unique there).
+///
+/// The plain sign fix of [`polar_rotation`] flips the direction of the smallest
+/// singular value; when two singular values of an inverted element cross, that
+/// choice jumps by up to a half turn between steps. Keeping the candidate
+/// nearest the previous rotation follows the element's turning without the jumps.
+pub fn polar_rotation_near(f: &Mat3, prev: &Mat3) -> Mat3 {
+    let scale = f.norm();
+    let det = f.determinant();
+    if scale.is_finite() && det > 1e-6 * scale * scale * scale {
+        return polar_rotation_fast(f);
+    }
+    if !f.iter().all(|x| x.is_finite()) {
+        return *prev;
+    }
+    let svd = f.svd(true, true);
+    let (Some(u), Some(v_t)) = (svd.u, svd.v_t) else {
+        return *prev;
+    };
+    let base = u * v_t;
+    let signs: &[[f64; 3]] = if base.determinant() < 0.0 {
+        &[
+            [-1.0, 1.0, 1.0],
+            [1.0, -1.0, 1.0],
+            [1.0, 1.0, -1.0],
+            [-1.0, -1.0, -1.0],
+        ]
+    } else {
+        &[
+            [1.0, 1.0, 1.0],
+            [1.0, -1.0, -1.0],
+            [-1.0, 1.0, -1.0],
+            [-1.0, -1.0, 1.0],
+        ]
+    };
+    let mut best = base;
+    let mut best_fit = f64::NEG_INFINITY;
+    for s in signs {
+        let r = u * Mat3::from_diagonal(&Vec3::new(s[0], s[1], s[2])) * v_t;
+        let fit = (prev.transpose() * r).trace();
+        if fit > best_fit {
+            best_fit = fit;
+            best = r;
+        }
+    }
+    best
+}
+
 /// Orthonormal frame built from two edges by Gram–Schmidt: columns
 /// `(x, y, z)` with `x ∥ a`, `z ∥ a × b`. Falls back to the identity for
 /// collinear edges.

@@ -973,11 +973,13 @@ fn unconverged_cg_rescues_with_a_fresh_factor() {
     }
 }
 
-/// An element pushed through itself keeps the rotation it had before it
-/// inverted, for as long as it stays inverted, and its force turns it back the
-/// way it came: with one face held, the pushed vertex returns to its place.
+/// An element pushed through itself turns continuously while it is inverted,
+/// and once let go its force turns it back the way it came: with one face
+/// held, the pushed vertex returns to its place, not to the mirror image below.
+/// (What the rotation of an inverted element avoids is checked in
+/// `inverted_rotation_follows_the_last_one`.)
 #[test]
-fn inverted_element_keeps_its_rotation_and_recovers() {
+fn inverted_element_turns_continuously_and_recovers() {
     let s = 0.01;
     let rest = [
         v3(0.0, 0.0, 0.0),
@@ -996,45 +998,87 @@ fn inverted_element_keeps_its_rotation_and_recovers() {
     // A quarter turn about z, at rest: the element's rotation is that turn.
     let q = *Rotation3::from_axis_angle(&Vec3::z_axis(), std::f64::consts::FRAC_PI_2).matrix();
     let turned: Vec<Vec3> = rest.iter().map(|p| q * p).collect();
-    let still = vec![Vec3::zeros(); 4];
-    body.set_state(&turned, &still).unwrap();
+    body.set_state(&turned, &vec![Vec3::zeros(); 4]).unwrap();
     body.fix_nodes(&[0, 1, 2]).unwrap();
     body.step(h).unwrap();
     assert!((body.element_rotations()[0] - q).norm() < 1e-9);
-    // Vertex 3 pushed far through the opposite face (and sideways).
-    let mut pushed = body.positions().to_vec();
-    pushed[3] = pushed[0] + q * v3(1.5 * s, 1.5 * s, -0.2 * s);
-    body.set_state(&pushed, &still).unwrap();
     let volume = |b: &DeformableBody| {
         let x = b.positions();
         (x[1] - x[0]).cross(&(x[2] - x[0])).dot(&(x[3] - x[0])) / 6.0
     };
-    assert!(volume(&body) < 0.0);
+    let angle = |m: Mat3| {
+        ((m.trace() - 1.0) / 2.0)
+            .clamp(-1.0, 1.0)
+            .acos()
+            .to_degrees()
+    };
+    // Vertex 3 driven down through the opposite face and sideways, then let go.
+    let target = turned[0] + q * v3(0.4 * s, 0.3 * s, -0.6 * s);
+    let mut prev = q;
     let mut inverted_steps = 0;
-    for _ in 0..3000 {
-        let was_inverted = volume(&body) <= 0.0;
-        body.step(h).unwrap();
-        if was_inverted {
-            inverted_steps += 1;
-            // Assembled with the rotation from before the inversion.
-            assert!(
-                (body.element_rotations()[0] - q).norm() < 1e-9,
-                "rotation changed while inverted"
-            );
+    for k in 1..=3000 {
+        if k <= 100 {
+            let t = k as f64 / 100.0;
+            body.drive_node(3, turned[3] * (1.0 - t) + target * t)
+                .unwrap();
+        } else if k == 101 {
+            body.free_node(3).unwrap();
         }
+        body.step(h).unwrap();
+        let r = body.element_rotations()[0];
+        if volume(&body) <= 0.0 {
+            inverted_steps += 1;
+        }
+        assert!(
+            angle(prev.transpose() * r) < 15.0,
+            "step {k}: the rotation jumped by {:.1}°",
+            angle(prev.transpose() * r)
+        );
+        prev = r;
         assert!(
             body.positions()
                 .iter()
                 .all(|p| p.iter().all(|c| c.is_finite()))
         );
     }
-    assert!(inverted_steps >= 1);
+    assert!(inverted_steps >= 10, "only {inverted_steps} steps inverted");
     // Back to the rest shape in the turned orientation.
     let x = body.positions();
+    assert!(volume(&body) > 0.0);
     assert!(
         (x[3] - turned[3]).norm() < 0.02 * s,
         "vertex 3 at {:?}, rest {:?}",
         x[3],
         turned[3]
     );
+}
+
+/// Where the two smallest singular values of an inverted `F` cross, the plain
+/// sign fix (flip the smallest) jumps by a half turn; the rotation nearest the
+/// last one does not.
+#[test]
+fn inverted_rotation_follows_the_last_one() {
+    use bevy_soft_tissue::math::polar_rotation_near;
+    let turn = *Rotation3::from_axis_angle(&Unit::new_normalize(v3(1.0, 2.0, 0.5)), 0.7).matrix();
+    let angle = |m: Mat3| {
+        ((m.trace() - 1.0) / 2.0)
+            .clamp(-1.0, 1.0)
+            .acos()
+            .to_degrees()
+    };
+    // Singular values 2, 0.5 ± d, and det F < 0.
+    let f = |d: f64| turn * Mat3::from_diagonal(&v3(2.0, 0.5 + d, -(0.5 - d)));
+    let (before, after) = (f(0.01), f(-0.01));
+    let plain = angle(polar_rotation(&before).transpose() * polar_rotation(&after));
+    assert!(plain > 170.0, "the plain sign fix turned by {plain:.1}°");
+    let first = polar_rotation_near(&before, &turn);
+    let next = polar_rotation_near(&after, &first);
+    assert!(angle(first.transpose() * next) < 1.0);
+    for r in [first, next] {
+        assert!((r.determinant() - 1.0).abs() < 1e-12);
+        assert!((r.transpose() * r - Mat3::identity()).norm() < 1e-12);
+    }
+    // Positive determinant: the polar rotation, whatever the last one was.
+    let g = turn * Mat3::from_diagonal(&v3(1.2, 0.9, 0.8));
+    assert!((polar_rotation_near(&g, &Mat3::identity()) - turn).norm() < 1e-12);
 }
