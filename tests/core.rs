@@ -1053,6 +1053,74 @@ fn inverted_element_turns_continuously_and_recovers() {
     );
 }
 
+/// The rotation warp is tried against the unwarped factor on each solve's
+/// first residual, and the better fit is kept: a warp that is pure noise (the
+/// matrix has not changed, the rotations say it turned) is left out, and a warp
+/// that is exact (the matrix turned rigidly) is kept. Either way CG converges
+/// as if the factor were current.
+#[test]
+fn rotation_warp_is_kept_only_where_it_fits() {
+    use bevy_soft_tissue::solver::PreconditionerState;
+    use bevy_soft_tissue::solver::cg::{self, CgScratch};
+    let mut body = DeformableBody::new(
+        beam([6, 2, 2], 0.06, 0.02),
+        TissueMaterial::new(1000.0, 1e5, 0.3),
+        BodySettings {
+            preconditioner: PreconditionerKind::None,
+            ..Default::default()
+        },
+    )
+    .unwrap();
+    body.fix_where(|p| p.x < 1e-9);
+    body.step(0.01).unwrap();
+    let a = body.system_matrix().clone();
+    let n = a.n();
+    let kind = PreconditionerKind::Periodic { every: 1000 };
+    let b: Vec<Vec3> = (0..n)
+        .map(|i| v3((i as f64).sin(), (0.7 * i as f64).cos(), 0.3))
+        .collect();
+    let settings = CgSettings {
+        warm_start: false,
+        ..Default::default()
+    };
+    let solve = |pc: &mut PreconditionerState, a: &BlockCsr, b: &[Vec3]| {
+        let mut x = vec![Vec3::zeros(); n];
+        let mut scratch = CgScratch::new(n);
+        let r = cg::solve(a, b, &mut x, pc, &settings, &mut scratch);
+        assert!(r.converged);
+        r.iterations
+    };
+    let identity = vec![Mat3::identity(); n];
+    // Noise: random node rotations over an unchanged matrix.
+    let noise: Vec<Mat3> = (0..n)
+        .map(|i| {
+            let axis = Unit::new_normalize(v3(1.0, i as f64, 2.0));
+            *Rotation3::from_axis_angle(&axis, 0.3 + 0.1 * (i % 5) as f64).matrix()
+        })
+        .collect();
+    let mut pc = PreconditionerState::new(kind, &a).unwrap();
+    pc.update(&a, &identity, 0).unwrap();
+    pc.update(&a, &noise, 1).unwrap();
+    let it = solve(&mut pc, &a, &b);
+    assert_eq!(pc.stats().warp_offered, 1);
+    assert_eq!(pc.stats().warp_declined, 1);
+    assert!(it <= 2, "{it} iterations with the noise left out");
+    // Exact: the whole matrix turned by q, and so did every node.
+    let q = *Rotation3::from_axis_angle(&Unit::new_normalize(v3(1.0, 2.0, 3.0)), 1.2).matrix();
+    let mut turned = a.clone();
+    for v in &mut turned.values {
+        *v = q * *v * q.transpose();
+    }
+    let bq: Vec<Vec3> = b.iter().map(|v| q * v).collect();
+    let mut pc = PreconditionerState::new(kind, &a).unwrap();
+    pc.update(&a, &identity, 0).unwrap();
+    pc.update(&turned, &vec![q; n], 1).unwrap();
+    let it = solve(&mut pc, &turned, &bq);
+    assert_eq!(pc.stats().warp_offered, 1);
+    assert_eq!(pc.stats().warp_declined, 0);
+    assert!(it <= 2, "{it} iterations with the exact warp");
+}
+
 /// Where the two smallest singular values of an inverted `F` cross, the plain
 /// sign fix (flip the smallest) jumps by a half turn; the rotation nearest the
 /// last one does not.

@@ -96,7 +96,7 @@ pub fn solve(
     }
     let tol = settings.tolerance * bnorm;
     let t0 = std::time::Instant::now();
-    precond.apply(r, z);
+    precond.apply_first(a, r, z, q);
     report.precond_seconds += t0.elapsed().as_secs_f64();
     p.copy_from_slice(z);
     let mut rz = dot(r, z);

@@ -16,6 +16,20 @@
 //! and `P⁻¹ = Q (L D Lᵀ)⁻¹ Qᵀ`. Node rotations are the polar part of the sum
 //! of the rotations of the elements around the node.
 //!
+//! ## When the warp is left out
+//! The warp is exact for a body that turns rigidly since its factor was made.
+//! Where it deforms instead (a lens squeezed into a slit), node rotations
+//! averaged from sheared, crushed elements swing from step to step and differ
+//! between neighbours, and `Q (L D Lᵀ) Qᵀ` can fit the current matrix worse
+//! than the unwarped factor of a matrix one or two steps old: in the cataract
+//! scene's push the lens needed about twice as many CG iterations with the
+//! warp. So each solve that has a warp to apply tries both on its first
+//! residual `r` and keeps, for that step, the one with the smaller
+//! `‖r − A P⁻¹ r‖` ([`Preconditioner::apply_first`]; one extra triangular solve
+//! and two products with `A` per step). The contact compliance of that step
+//! uses the same choice ([`FactorState::warped`]).
+//! [`PreconditionerStats::warp_declined`] counts the steps without it.
+//!
 //! ## Rescue
 //! The warp follows rotations, not changes of shape. If CG runs out of
 //! iterations with an old factor (`Periodic`, `Async`), the body factorizes the
@@ -56,6 +70,15 @@ use ldlt::{LdltFactor, LdltSymbolic};
 pub trait Preconditioner: Send {
     /// Computes `z = P⁻¹ r`.
     fn apply(&mut self, r: &[Vec3], z: &mut [Vec3]);
+
+    /// The first application of a solve, with the matrix `a` and the initial
+    /// residual `r` at hand (`q` is free scratch of the same length). A
+    /// preconditioner with a choice to make for the whole solve makes it here;
+    /// the default is [`Self::apply`].
+    fn apply_first(&mut self, a: &BlockCsr, r: &[Vec3], z: &mut [Vec3], q: &mut [Vec3]) {
+        let _ = (a, q);
+        self.apply(r, z);
+    }
 }
 
 /// Which preconditioner a body uses.
@@ -104,6 +127,10 @@ pub struct PreconditionerStats {
     pub failures: u64,
     /// Blocking refactorizations because CG did not converge with the old factor.
     pub rescues: u64,
+    /// Solves that had a rotation warp to apply.
+    pub warp_offered: u64,
+    /// Of those, solves where the unwarped factor fitted better and the warp was left out.
+    pub warp_declined: u64,
 }
 
 struct Job {
@@ -321,7 +348,10 @@ pub struct FactorState {
     pub rotations: Vec<Mat3>,
     /// Warp `Q_i = R_i R̂_iᵀ` from those rotations to the current ones.
     pub warp: Vec<Mat3>,
-    /// Whether `warp` differs from the identity.
+    /// Whether `warp` differs from the identity (the factor is older than the matrix).
+    pub rotated: bool,
+    /// Whether `warp` is applied this step: `rotated`, unless the unwarped factor
+    /// fitted the first residual of this step's solve better (see the module docs).
     pub warped: bool,
     /// Step at which the factored matrix was taken.
     pub step: u64,
@@ -340,6 +370,7 @@ pub struct PreconditionerState {
     work: Vec<Mat3>,
     tmp: Vec<Vec3>,
     tmp2: Vec<Vec3>,
+    alt: Vec<Vec3>,
     stats: PreconditionerStats,
 }
 
@@ -372,6 +403,7 @@ impl PreconditionerState {
             work: Vec::with_capacity(n),
             tmp: vec![Vec3::zeros(); n],
             tmp2: vec![Vec3::zeros(); n],
+            alt: vec![Vec3::zeros(); n],
             stats: PreconditionerStats::default(),
         })
     }
@@ -412,6 +444,7 @@ impl PreconditionerState {
         self.factorize_now(a, rotations, step)?;
         if let Some(st) = &mut self.state {
             st.warped = false;
+            st.rotated = false;
             st.warp.fill(Mat3::identity());
         }
         self.stats.rescues += 1;
@@ -428,6 +461,7 @@ impl PreconditionerState {
             factor: sym.alloc_factor(),
             rotations: rotations.to_vec(),
             warp: vec![Mat3::identity(); rotations.len()],
+            rotated: false,
             warped: false,
             step,
             version: 0,
@@ -506,8 +540,9 @@ impl PreconditionerState {
         }
         if let Some(st) = &mut self.state {
             self.stats.factor_age = step.saturating_sub(st.step);
-            st.warped = self.kind.needs_rotations() && st.step != step;
-            if st.warped {
+            st.rotated = self.kind.needs_rotations() && st.step != step;
+            st.warped = st.rotated;
+            if st.rotated {
                 for i in 0..st.warp.len() {
                     st.warp[i] = rotations[i] * st.rotations[i].transpose();
                 }
@@ -519,7 +554,43 @@ impl PreconditionerState {
     }
 }
 
+fn residual_norm2(a: &BlockCsr, r: &[Vec3], z: &[Vec3], q: &mut [Vec3]) -> f64 {
+    a.mul_vec(z, q);
+    r.iter()
+        .zip(q.iter())
+        .map(|(r, q)| (r - q).norm_squared())
+        .sum()
+}
+
 impl Preconditioner for PreconditionerState {
+    /// With a warp to apply, tries the factor with and without it on the first
+    /// residual and keeps, for this step, the one that leaves the smaller
+    /// residual `‖r − A P⁻¹ r‖` (the better fit of `A` where the solve starts).
+    fn apply_first(&mut self, a: &BlockCsr, r: &[Vec3], z: &mut [Vec3], q: &mut [Vec3]) {
+        if !self.state.as_ref().is_some_and(|st| st.rotated) {
+            return self.apply(r, z);
+        }
+        self.stats.warp_offered += 1;
+        if let Some(st) = &mut self.state {
+            st.warped = true;
+        }
+        self.apply(r, z);
+        let with = residual_norm2(a, r, z, q);
+        let mut alt = std::mem::take(&mut self.alt);
+        if let Some(st) = &mut self.state {
+            st.warped = false;
+        }
+        self.apply(r, &mut alt);
+        let without = residual_norm2(a, r, &alt, q);
+        if without < with {
+            z.copy_from_slice(&alt);
+            self.stats.warp_declined += 1;
+        } else if let Some(st) = &mut self.state {
+            st.warped = true;
+        }
+        self.alt = alt;
+    }
+
     fn apply(&mut self, r: &[Vec3], z: &mut [Vec3]) {
         match (&self.kind, &self.state) {
             (PreconditionerKind::None, _) => z.copy_from_slice(r),
