@@ -542,8 +542,12 @@ impl DeformableBody {
             let slots = &pattern.element_slots[ei];
             for a in 0..4 {
                 self.rhs[e.nodes[a]] -= s * e.grads[a];
-                for b in 0..4 {
-                    self.matrix.values[slots[4 * a + b]] += e.stiffness_block(&rg, a, b) * c_k;
+                // K_ba = K_abᵀ: each off-diagonal pair is computed once.
+                self.matrix.values[slots[5 * a]] += e.stiffness_block(&rg, a, a) * c_k;
+                for b in a + 1..4 {
+                    let k = e.stiffness_block(&rg, a, b) * c_k;
+                    self.matrix.values[slots[4 * a + b]] += k;
+                    self.matrix.values[slots[4 * b + a]] += k.transpose();
                 }
             }
         }

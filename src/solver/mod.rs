@@ -23,11 +23,12 @@
 //! between neighbours, and `Q (L D Lᵀ) Qᵀ` can fit the current matrix worse
 //! than the unwarped factor of a matrix one or two steps old: in the cataract
 //! scene's push the lens needed about twice as many CG iterations with the
-//! warp. So each solve that has a warp to apply tries both on its first
-//! residual `r` and keeps, for that step, the one with the smaller
-//! `‖r − A P⁻¹ r‖` ([`Preconditioner::apply_first`]; one extra triangular solve
-//! and two products with `A` per step). The contact compliance of that step
-//! uses the same choice ([`FactorState::warped`]).
+//! warp. So the first solve with each new factor tries both on its first
+//! residual `r` and keeps the one with the smaller `‖r − A P⁻¹ r‖`
+//! ([`Preconditioner::apply_first`]; one extra triangular solve and two
+//! products with `A`). The choice holds while the factor is in use and is tried
+//! again when it is 4, 8, 16, … steps old, as the warp gains on an ageing
+//! factor. The contact compliance uses the same choice ([`FactorState::warped`]).
 //! [`PreconditionerStats::warp_declined`] counts the steps without it.
 //!
 //! ## Rescue
@@ -371,6 +372,8 @@ pub struct PreconditionerState {
     tmp: Vec<Vec3>,
     tmp2: Vec<Vec3>,
     alt: Vec<Vec3>,
+    /// Factor version the warp was last tried on, and whether it was kept.
+    warp_choice: Option<(u64, bool)>,
     stats: PreconditionerStats,
 }
 
@@ -404,6 +407,7 @@ impl PreconditionerState {
             tmp: vec![Vec3::zeros(); n],
             tmp2: vec![Vec3::zeros(); n],
             alt: vec![Vec3::zeros(); n],
+            warp_choice: None,
             stats: PreconditionerStats::default(),
         })
     }
@@ -564,16 +568,31 @@ fn residual_norm2(a: &BlockCsr, r: &[Vec3], z: &[Vec3], q: &mut [Vec3]) -> f64 {
 
 impl Preconditioner for PreconditionerState {
     /// With a warp to apply, tries the factor with and without it on the first
-    /// residual and keeps, for this step, the one that leaves the smaller
-    /// residual `‖r − A P⁻¹ r‖` (the better fit of `A` where the solve starts).
+    /// residual and keeps the one that leaves the smaller residual
+    /// `‖r − A P⁻¹ r‖` (the better fit of `A` where the solve starts). The
+    /// choice holds for the factor's later steps and is tried again when the
+    /// factor is 4, 8, 16, … steps old.
     fn apply_first(&mut self, a: &BlockCsr, r: &[Vec3], z: &mut [Vec3], q: &mut [Vec3]) {
-        if !self.state.as_ref().is_some_and(|st| st.rotated) {
+        let Some(st) = self.state.as_mut().filter(|st| st.rotated) else {
+            return self.apply(r, z);
+        };
+        self.stats.warp_offered += 1;
+        // Decided once per factor, and again as it ages (4, 8, 16, … steps).
+        let age = self.stats.factor_age;
+        let retest = self
+            .warp_choice
+            .is_none_or(|(version, _)| version != st.version)
+            || (age >= 4 && age.is_power_of_two());
+        if !retest {
+            let keep = self.warp_choice.is_some_and(|(_, keep)| keep);
+            st.warped = keep;
+            if !keep {
+                self.stats.warp_declined += 1;
+            }
             return self.apply(r, z);
         }
-        self.stats.warp_offered += 1;
-        if let Some(st) = &mut self.state {
-            st.warped = true;
-        }
+        let version = st.version;
+        st.warped = true;
         self.apply(r, z);
         let with = residual_norm2(a, r, z, q);
         let mut alt = std::mem::take(&mut self.alt);
@@ -588,6 +607,7 @@ impl Preconditioner for PreconditionerState {
         } else if let Some(st) = &mut self.state {
             st.warped = true;
         }
+        self.warp_choice = Some((version, without >= with));
         self.alt = alt;
     }
 
