@@ -998,7 +998,7 @@ fn inverted_element_turns_continuously_and_recovers() {
     // A quarter turn about z, at rest: the element's rotation is that turn.
     let q = *Rotation3::from_axis_angle(&Vec3::z_axis(), std::f64::consts::FRAC_PI_2).matrix();
     let turned: Vec<Vec3> = rest.iter().map(|p| q * p).collect();
-    body.set_state(&turned, &vec![Vec3::zeros(); 4]).unwrap();
+    body.set_state(&turned, &[Vec3::zeros(); 4]).unwrap();
     body.fix_nodes(&[0, 1, 2]).unwrap();
     body.step(h).unwrap();
     assert!((body.element_rotations()[0] - q).norm() < 1e-9);
