@@ -21,19 +21,14 @@ pub fn v3(x: f64, y: f64, z: f64) -> Vec3 {
 /// belonging to the smallest singular value flipped when `det(U Vᵀ) < 0`, so
 /// that `R` is always a proper rotation.
 pub fn polar_rotation(f: &Mat3) -> Mat3 {
-    if !f.iter().all(|x| x.is_finite()) {
-        return Mat3::identity();
-    }
-    let svd = f.svd(true, true);
-    let (Some(mut u), Some(v_t)) = (svd.u, svd.v_t) else {
+    let Some((mut u, sigma, v_t)) = svd3(f) else {
         return Mat3::identity();
     };
     let r = u * v_t;
     if r.determinant() < 0.0 {
-        // nalgebra sorts singular values in decreasing order: the last one is the smallest.
         let mut smallest = 0;
         for i in 1..3 {
-            if svd.singular_values[i] < svd.singular_values[smallest] {
+            if sigma[i] < sigma[smallest] {
                 smallest = i;
             }
         }
@@ -43,6 +38,15 @@ pub fn polar_rotation(f: &Mat3) -> Mat3 {
         return u * v_t;
     }
     r
+}
+
+/// `U`, the singular values and `Vᵀ` of a finite `F` (`None` otherwise).
+fn svd3(f: &Mat3) -> Option<(Mat3, Vec3, Mat3)> {
+    if !f.iter().all(|x| x.is_finite()) {
+        return None;
+    }
+    let svd = f.svd(true, true);
+    Some((svd.u?, svd.singular_values, svd.v_t?))
 }
 
 /// The proper rotation of an inverted or flat `F` that is closest to `prev`
@@ -60,11 +64,7 @@ pub fn polar_rotation_near(f: &Mat3, prev: &Mat3) -> Mat3 {
     if scale.is_finite() && det > 1e-6 * scale * scale * scale {
         return polar_rotation_fast(f);
     }
-    if !f.iter().all(|x| x.is_finite()) {
-        return *prev;
-    }
-    let svd = f.svd(true, true);
-    let (Some(u), Some(v_t)) = (svd.u, svd.v_t) else {
+    let Some((u, _, v_t)) = svd3(f) else {
         return *prev;
     };
     let base = u * v_t;

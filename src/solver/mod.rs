@@ -566,6 +566,16 @@ fn residual_norm2(a: &BlockCsr, r: &[Vec3], z: &[Vec3], q: &mut [Vec3]) -> f64 {
         .sum()
 }
 
+impl PreconditionerState {
+    /// [`Preconditioner::apply`] with the warp on or off (a factor is in use).
+    fn apply_warped(&mut self, on: bool, r: &[Vec3], z: &mut [Vec3]) {
+        if let Some(st) = &mut self.state {
+            st.warped = on;
+        }
+        self.apply(r, z);
+    }
+}
+
 impl Preconditioner for PreconditionerState {
     /// With a warp to apply, tries the factor with and without it on the first
     /// residual and keeps the one that leaves the smaller residual
@@ -573,42 +583,42 @@ impl Preconditioner for PreconditionerState {
     /// choice holds for the factor's later steps and is tried again when the
     /// factor is 4, 8, 16, … steps old.
     fn apply_first(&mut self, a: &BlockCsr, r: &[Vec3], z: &mut [Vec3], q: &mut [Vec3]) {
-        let Some(st) = self.state.as_mut().filter(|st| st.rotated) else {
+        let Some(version) = self
+            .state
+            .as_ref()
+            .filter(|st| st.rotated)
+            .map(|st| st.version)
+        else {
             return self.apply(r, z);
         };
         self.stats.warp_offered += 1;
         // Decided once per factor, and again as it ages (4, 8, 16, … steps).
         let age = self.stats.factor_age;
-        let retest = self
-            .warp_choice
-            .is_none_or(|(version, _)| version != st.version)
-            || (age >= 4 && age.is_power_of_two());
-        if !retest {
-            let keep = self.warp_choice.is_some_and(|(_, keep)| keep);
-            st.warped = keep;
-            if !keep {
-                self.stats.warp_declined += 1;
+        let keep = match self.warp_choice {
+            Some((v, keep)) if v == version && !(age >= 4 && age.is_power_of_two()) => {
+                self.apply_warped(keep, r, z);
+                keep
             }
-            return self.apply(r, z);
-        }
-        let version = st.version;
-        st.warped = true;
-        self.apply(r, z);
-        let with = residual_norm2(a, r, z, q);
-        let mut alt = std::mem::take(&mut self.alt);
+            _ => {
+                self.apply_warped(true, r, z);
+                let with = residual_norm2(a, r, z, q);
+                let mut alt = std::mem::take(&mut self.alt);
+                self.apply_warped(false, r, &mut alt);
+                let keep = with <= residual_norm2(a, r, &alt, q);
+                if !keep {
+                    z.copy_from_slice(&alt);
+                }
+                self.alt = alt;
+                self.warp_choice = Some((version, keep));
+                keep
+            }
+        };
         if let Some(st) = &mut self.state {
-            st.warped = false;
+            st.warped = keep;
         }
-        self.apply(r, &mut alt);
-        let without = residual_norm2(a, r, &alt, q);
-        if without < with {
-            z.copy_from_slice(&alt);
+        if !keep {
             self.stats.warp_declined += 1;
-        } else if let Some(st) = &mut self.state {
-            st.warped = true;
         }
-        self.warp_choice = Some((version, without >= with));
-        self.alt = alt;
     }
 
     fn apply(&mut self, r: &[Vec3], z: &mut [Vec3]) {
