@@ -15,7 +15,8 @@
 //! at the predicted positions, `ContactSettings::predict`) — accuracy against time.
 //!
 //! Headless, it prints the median time per phase, the steps per second, the
-//! contact counts and CG iterations, and exits nonzero on NaN, on a pipeline
+//! contact counts and CG iterations, where the lens ended (inside the eye, in
+//! the incision, or out of it), and exits nonzero on NaN, on a pipeline
 //! error or on a penetration beyond 1 % of the lens's smallest edge (into
 //! the vectis or between lens and sclera, checked at the end of every step).
 //!
@@ -29,6 +30,7 @@
 use std::process::ExitCode;
 
 use bevy_soft_tissue::contact::ComplianceMode;
+use bevy_soft_tissue::mesh::generate::LENS_RADII;
 use bevy_soft_tissue::plugin::SoftTissueConfig;
 use bevy_soft_tissue::scenes::{cataract::CataractParams, run_headless};
 use bevy_soft_tissue::solver::PreconditionerKind;
@@ -171,6 +173,19 @@ fn headless(args: &Args, params: &CataractParams, config: SoftTissueConfig) -> E
                 moved.y,
                 moved.z,
                 s.max_lens_speed * 1e3
+            );
+            // The eye is centred at the origin: how far out the lens ended.
+            let (end, radius) = (s.lens_center.1.norm(), params.eye.radius);
+            println!(
+                "lens centre ends {:.2} mm from the eye's centre ({})",
+                end * 1e3,
+                if end > radius + LENS_RADII[2] {
+                    "out of the eye: delivered"
+                } else if end > radius - LENS_RADII[2] {
+                    "in the incision"
+                } else {
+                    "inside the eye"
+                }
             );
             println!(
                 "max penetration at step end {:.2e} m, lens-sclera {:.2e} m (tolerance {:.2e} m)",

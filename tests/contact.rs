@@ -641,6 +641,46 @@ fn node_columns_are_reused_while_the_factor_is_unchanged() {
     assert!(second.gram_blocks < first.gram_blocks);
 }
 
+/// With the async preconditioner, the background worker solves the node
+/// columns and Gram blocks of the nodes last in contact with each new factor:
+/// the step that swaps such a factor in solves (almost) nothing on the
+/// stepping thread, and `W` built from those columns is the `W` of that factor.
+#[test]
+fn async_worker_precomputes_contact_columns() {
+    let (mut scene, h) = pressed_lens(PreconditionerKind::Async, ComplianceMode::Factorized);
+    let mut adopted = None;
+    for _ in 0..200 {
+        // Give the worker time to finish a factorization between steps.
+        std::thread::sleep(std::time::Duration::from_millis(20));
+        let before = scene.bodies[0].report().preconditioner.precomputed_columns;
+        let r = scene.step(h).unwrap();
+        let after = scene.bodies[0].report().preconditioner.precomputed_columns;
+        if after > before && r.contacts > 5 {
+            adopted = Some(r);
+            break;
+        }
+    }
+    let r = adopted.expect("no factor with precomputed columns arrived in 200 steps");
+    assert!(
+        r.solves * 4 < r.contacts,
+        "{} node columns solved on the stepping thread for {} contacts",
+        r.solves,
+        r.contacts
+    );
+    // W from the cached (precomputed) columns matches the dense reference of the factor.
+    let b = &scene.bodies[0];
+    let t = &scene.tools[0];
+    scene.contact.detect(&[b], &[t], h).unwrap();
+    scene.contact.build_compliance(&[b]).unwrap();
+    assert_eq!(scene.contact.report().solves, 0, "{:?}", scene.contact.report());
+    let (w, m) = scene.contact.delassus();
+    let st = b.preconditioner().factor_state().unwrap();
+    let inv = dense_solve_matrix(&st.factor, b.num_nodes());
+    let wref = reference_w(scene.contact.jacobian(0), &inv, m, h, true);
+    let err = max_rel_diff(w, &wref);
+    assert!(err <= 1e-10, "relative difference {err:e}");
+}
+
 #[test]
 fn rest_precomputed_refuses_large_meshes() {
     let mesh = generate::box_mesh(v3(0.0, 0.0, 0.0), v3(0.02, 0.02, 0.02), [13, 13, 13]).unwrap();

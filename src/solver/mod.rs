@@ -51,11 +51,26 @@
 //! just received its factor cannot take the freed slot again ahead of a body
 //! still waiting, so with two bodies on two cores they take turns instead of
 //! one of them starving with an ever older factor.
+//!
+//! ## Contact columns made with the factor
+//! The contact compliance needs, with every new factor, the node columns
+//! `L⁻¹ P E_k` of the nodes in contact and their Gram blocks (see
+//! [`crate::contact::compliance`]); on the stepping thread that cost, per
+//! refresh, 2.5–5 ms for the paper-size lens with 60–90 contacts and about
+//! 20 ms at 260 (`compliance_bench`, "new factor"). The compliance leaves
+//! the nodes of its latest build as a hint; the worker solves their columns
+//! and all their Gram blocks right after the factorization, and the factor is
+//! handed over with them. The compliance takes them when it first uses that
+//! factor, and solves on the stepping thread only nodes that came into
+//! contact since. The refresh takes longer by that much, so factors are a
+//! little older when contacts are many. Counted in
+//! [`PreconditionerStats::precomputed_columns`]. Bodies without contacts
+//! leave no hint, and their worker factorizes only.
 
 pub mod cg;
+pub(crate) mod columns;
 pub mod ldlt;
 
-use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::thread::JoinHandle;
 use std::time::Instant;
@@ -65,7 +80,9 @@ use crossbeam::channel::{Receiver, Sender, TryRecvError, bounded};
 use crate::error::{Result, SoftTissueError};
 use crate::fem::assembly::BlockCsr;
 use crate::math::{Mat3, Vec3};
+use columns::ColumnCache;
 use ldlt::{LdltFactor, LdltSymbolic};
+use std::sync::{Arc, Mutex};
 
 /// Applies `z = P⁻¹ r`.
 pub trait Preconditioner: Send {
@@ -132,6 +149,9 @@ pub struct PreconditionerStats {
     pub warp_offered: u64,
     /// Of those, solves where the unwarped factor fitted better and the warp was left out.
     pub warp_declined: u64,
+    /// Node columns the background worker solved with its new factors for the
+    /// contact compliance (see [`crate::contact::compliance`]).
+    pub precomputed_columns: u64,
 }
 
 struct Job {
@@ -139,6 +159,9 @@ struct Job {
     rotations: Vec<Mat3>,
     factor: LdltFactor,
     step: u64,
+    /// Nodes whose columns to precompute with the new factor (may be empty).
+    hint: Vec<u32>,
+    columns: Option<ColumnCache>,
 }
 
 struct Done {
@@ -148,6 +171,26 @@ struct Done {
     step: u64,
     result: Result<()>,
     seconds: f64,
+    hint: Vec<u32>,
+    /// The precomputed columns (when the job had a hint and the factorization succeeded).
+    columns: Option<ColumnCache>,
+}
+
+/// Node columns passed between the contact compliance (on the stepping
+/// thread) and the background worker: the nodes last in contact, the columns
+/// of the newest factor, and memory to reuse.
+#[derive(Debug, Default)]
+struct ColumnExchange {
+    /// Nodes whose columns the next background factorization precomputes.
+    hint: Vec<u32>,
+    /// Columns of a factor swapped in (stamped with its version), not yet taken.
+    ready: Option<ColumnCache>,
+    /// A cache whose memory the next precomputation reuses.
+    spare: Option<ColumnCache>,
+}
+
+fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|e| e.into_inner())
 }
 
 /// Factorizations running in background workers, all bodies together.
@@ -180,6 +223,7 @@ pub struct AsyncFactorizer {
     alive: Arc<AtomicBool>,
     in_flight: bool,
     spare: Option<(Vec<Mat3>, Vec<Mat3>, LdltFactor)>,
+    hint: Vec<u32>,
 }
 
 impl std::fmt::Debug for AsyncFactorizer {
@@ -211,6 +255,15 @@ impl AsyncFactorizer {
                     let t0 = Instant::now();
                     mat.values = std::mem::take(&mut job.values);
                     let result = sym.factorize(&mat, &mut job.factor, &mut work);
+                    // The compliance's node columns of the new factor, here
+                    // rather than on the stepping thread.
+                    let columns = match (&result, job.columns.take()) {
+                        (Ok(()), Some(mut c)) if !job.hint.is_empty() => {
+                            c.precompute(&job.factor, 0, &job.hint);
+                            Some(c)
+                        }
+                        (_, c) => c,
+                    };
                     IN_FLIGHT.fetch_sub(1, Ordering::SeqCst);
                     let done = Done {
                         values: std::mem::take(&mut mat.values),
@@ -219,6 +272,8 @@ impl AsyncFactorizer {
                         step: job.step,
                         result,
                         seconds: t0.elapsed().as_secs_f64(),
+                        hint: job.hint,
+                        columns,
                     };
                     if done_tx.send(done).is_err() {
                         break;
@@ -240,6 +295,7 @@ impl AsyncFactorizer {
             alive,
             in_flight: false,
             spare,
+            hint: Vec::new(),
         }
     }
 
@@ -275,7 +331,13 @@ impl AsyncFactorizer {
         got
     }
 
-    fn submit(&mut self, a: &BlockCsr, rotations: &[Mat3], step: u64) {
+    fn submit(
+        &mut self,
+        a: &BlockCsr,
+        rotations: &[Mat3],
+        step: u64,
+        exchange: &Mutex<ColumnExchange>,
+    ) {
         if self.in_flight {
             return;
         }
@@ -306,11 +368,24 @@ impl AsyncFactorizer {
         };
         values.copy_from_slice(&a.values);
         rots.copy_from_slice(rotations);
+        let mut hint = std::mem::take(&mut self.hint);
+        let columns = {
+            let mut ex = lock(exchange);
+            hint.clear();
+            hint.extend_from_slice(&ex.hint);
+            if hint.is_empty() {
+                None
+            } else {
+                Some(ex.spare.take().unwrap_or_default())
+            }
+        };
         let job = Job {
             values,
             rotations: rots,
             factor,
             step,
+            hint,
+            columns,
         };
         if tx.send(job).is_ok() {
             self.in_flight = true;
@@ -372,6 +447,7 @@ pub struct PreconditionerState {
     tmp: Vec<Vec3>,
     tmp2: Vec<Vec3>,
     alt: Vec<Vec3>,
+    columns: Mutex<ColumnExchange>,
     /// Factor version the warp was last tried on, and whether it was kept.
     warp_choice: Option<(u64, bool)>,
     stats: PreconditionerStats,
@@ -407,9 +483,38 @@ impl PreconditionerState {
             tmp: vec![Vec3::zeros(); n],
             tmp2: vec![Vec3::zeros(); n],
             alt: vec![Vec3::zeros(); n],
+            columns: Mutex::default(),
             warp_choice: None,
             stats: PreconditionerStats::default(),
         })
+    }
+
+    /// The node columns of factor version `version`, when the background
+    /// worker precomputed them (the compliance takes them once).
+    pub(crate) fn take_columns(&self, version: u64) -> Option<ColumnCache> {
+        let mut ex = lock(&self.columns);
+        if ex.ready.as_ref().is_some_and(|c| c.version == version) {
+            ex.ready.take()
+        } else {
+            None
+        }
+    }
+
+    /// Hands a cache back for its memory to be reused.
+    pub(crate) fn give_back_columns(&self, c: ColumnCache) {
+        let mut ex = lock(&self.columns);
+        if ex.spare.is_none() {
+            ex.spare = Some(c);
+        }
+    }
+
+    /// The nodes whose columns the next background factorization precomputes
+    /// (the compliance sets the nodes of its latest build). Only `Async` has a
+    /// worker; for the other kinds this is kept and unused.
+    pub(crate) fn set_column_hint(&self, nodes: impl Iterator<Item = u32>) {
+        let mut ex = lock(&self.columns);
+        ex.hint.clear();
+        ex.hint.extend(nodes);
     }
 
     /// The kind.
@@ -521,6 +626,7 @@ impl PreconditionerState {
                 {
                     self.stats.factor_seconds = done.seconds;
                     let stale = self.state.as_ref().is_some_and(|st| done.step < st.step);
+                    let mut columns = done.columns.take();
                     match done.result {
                         // A rescue factorized a newer matrix meanwhile: keep that one.
                         Ok(()) if stale => {}
@@ -530,15 +636,25 @@ impl PreconditionerState {
                                 std::mem::swap(&mut st.rotations, &mut done.rotations);
                                 st.step = done.step;
                                 st.version += 1;
+                                if let Some(mut c) = columns.take() {
+                                    c.version = st.version;
+                                    self.stats.precomputed_columns += c.cols.len() as u64;
+                                    let mut ex = lock(&self.columns);
+                                    columns = ex.ready.replace(c);
+                                }
                             }
                             self.stats.refreshes += 1;
                         }
                         Err(_) => self.stats.failures += 1,
                     }
+                    if let Some(c) = columns {
+                        lock(&self.columns).spare = Some(c);
+                    }
                     w.spare = Some((done.values, done.rotations, done.factor));
+                    w.hint = done.hint;
                 }
                 if let Some(w) = &mut self.worker {
-                    w.submit(a, rotations, step);
+                    w.submit(a, rotations, step, &self.columns);
                 }
             }
         }
