@@ -672,7 +672,12 @@ fn async_worker_precomputes_contact_columns() {
     let t = &scene.tools[0];
     scene.contact.detect(&[b], &[t], h).unwrap();
     scene.contact.build_compliance(&[b]).unwrap();
-    assert_eq!(scene.contact.report().solves, 0, "{:?}", scene.contact.report());
+    assert_eq!(
+        scene.contact.report().solves,
+        0,
+        "{:?}",
+        scene.contact.report()
+    );
     let (w, m) = scene.contact.delassus();
     let st = b.preconditioner().factor_state().unwrap();
     let inv = dense_solve_matrix(&st.factor, b.num_nodes());

@@ -625,4 +625,3 @@ fn dense_rows(
         s = e;
     }
 }
-

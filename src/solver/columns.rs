@@ -10,8 +10,8 @@
 //! nodes last in contact before it hands a new factor over, so that the stepping
 //! thread finds them ready.
 
-use crate::math::Mat3;
 use super::ldlt::LdltFactor;
+use crate::math::Mat3;
 
 #[derive(Debug, Clone, Copy)]
 pub(crate) struct Column {
@@ -271,4 +271,3 @@ mod tests {
         }
     }
 }
-
