@@ -27,6 +27,16 @@ fn lens(cells: usize, kind: PreconditionerKind) -> DeformableBody {
     .unwrap()
 }
 
+/// A contact solver with default settings but the alarm distance, for
+/// detection passes of a test's own.
+fn detector(alarm: f64) -> ContactSolver {
+    ContactSolver::new(ContactSettings {
+        alarm_distance: alarm,
+        ..Default::default()
+    })
+    .unwrap()
+}
+
 fn at(x: f64, y: f64, z: f64) -> Pose {
     Isometry3::from_parts(Translation3::new(x, y, z), UnitQuaternion::identity())
 }
@@ -473,11 +483,7 @@ fn two_bodies_pressed_together() {
         assert!(fb.z > 0.0, "the lower body pushes the upper one up");
         // Re-detect at the corrected positions: no vertex deeper than the tolerance.
         let (ba, bb) = (&scene.bodies[0], &scene.bodies[1]);
-        let mut probe = ContactSolver::new(ContactSettings {
-            alarm_distance: 2e-4,
-            ..Default::default()
-        })
-        .unwrap();
+        let mut probe = detector(2e-4);
         probe.detect(&[ba, bb], &[], 0.003).unwrap();
         let worst = probe
             .contacts()
@@ -830,11 +836,7 @@ fn corner_contact(
     corner: usize,
     alarm: f64,
 ) -> Option<(bevy_soft_tissue::contact::Contact, f64)> {
-    let mut solver = ContactSolver::new(ContactSettings {
-        alarm_distance: alarm,
-        ..Default::default()
-    })
-    .unwrap();
+    let mut solver = detector(alarm);
     solver.detect(&[slab, block], &[], 0.01).unwrap();
     let c = solver
         .contacts()

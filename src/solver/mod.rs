@@ -72,6 +72,7 @@ pub(crate) mod columns;
 pub mod ldlt;
 
 use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
 use std::thread::JoinHandle;
 use std::time::Instant;
 
@@ -82,7 +83,6 @@ use crate::fem::assembly::BlockCsr;
 use crate::math::{Mat3, Vec3};
 use columns::ColumnCache;
 use ldlt::{LdltFactor, LdltSymbolic};
-use std::sync::{Arc, Mutex};
 
 /// Applies `z = P⁻¹ r`.
 pub trait Preconditioner: Send {
@@ -189,6 +189,16 @@ struct ColumnExchange {
     spare: Option<ColumnCache>,
 }
 
+impl ColumnExchange {
+    /// Keeps `c` for its memory, unless a spare is already kept.
+    fn keep_spare(&mut self, c: ColumnCache) {
+        if self.spare.is_none() {
+            self.spare = Some(c);
+        }
+    }
+}
+
+/// Locks `m`; a panic elsewhere while it was held leaves the data usable.
 fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
     m.lock().unwrap_or_else(|e| e.into_inner())
 }
@@ -257,13 +267,10 @@ impl AsyncFactorizer {
                     let result = sym.factorize(&mat, &mut job.factor, &mut work);
                     // The compliance's node columns of the new factor, here
                     // rather than on the stepping thread.
-                    let columns = match (&result, job.columns.take()) {
-                        (Ok(()), Some(mut c)) if !job.hint.is_empty() => {
-                            c.precompute(&job.factor, 0, &job.hint);
-                            Some(c)
-                        }
-                        (_, c) => c,
-                    };
+                    // (A job carries a cache only when it has a hint.)
+                    if let (Ok(()), Some(c)) = (&result, job.columns.as_mut()) {
+                        c.precompute(&job.factor, 0, &job.hint);
+                    }
                     IN_FLIGHT.fetch_sub(1, Ordering::SeqCst);
                     let done = Done {
                         values: std::mem::take(&mut mat.values),
@@ -273,7 +280,7 @@ impl AsyncFactorizer {
                         result,
                         seconds: t0.elapsed().as_secs_f64(),
                         hint: job.hint,
-                        columns,
+                        columns: job.columns,
                     };
                     if done_tx.send(done).is_err() {
                         break;
@@ -345,7 +352,7 @@ impl AsyncFactorizer {
         // at once; the others queue and hand over their matrix when their turn comes.
         let limit = max_in_flight();
         {
-            let mut waiting = WAITING.lock().unwrap_or_else(|e| e.into_inner());
+            let mut waiting = lock(&WAITING);
             let first = waiting.front().is_none_or(|&w| w == self.id);
             let got = first
                 && IN_FLIGHT
@@ -397,10 +404,7 @@ impl AsyncFactorizer {
 
 impl Drop for AsyncFactorizer {
     fn drop(&mut self) {
-        WAITING
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
-            .retain(|&w| w != self.id);
+        lock(&WAITING).retain(|&w| w != self.id);
         self.tx = None;
         // Drain a finished job so the worker is not stuck on a full channel.
         while self.rx.try_recv().is_ok() {}
@@ -502,10 +506,7 @@ impl PreconditionerState {
 
     /// Hands a cache back for its memory to be reused.
     pub(crate) fn give_back_columns(&self, c: ColumnCache) {
-        let mut ex = lock(&self.columns);
-        if ex.spare.is_none() {
-            ex.spare = Some(c);
-        }
+        lock(&self.columns).keep_spare(c);
     }
 
     /// The nodes whose columns the next background factorization precomputes
@@ -648,7 +649,7 @@ impl PreconditionerState {
                         Err(_) => self.stats.failures += 1,
                     }
                     if let Some(c) = columns {
-                        lock(&self.columns).spare = Some(c);
+                        lock(&self.columns).keep_spare(c);
                     }
                     w.spare = Some((done.values, done.rotations, done.factor));
                     w.hint = done.hint;
