@@ -6,8 +6,9 @@
 //! ```
 //!
 //! Options: `--headless`, `--steps N` (headless, default: the scripted path and
-//! one second more, 540 or with `--deliver` 900), `--deliver` (push the lens on
-//! through the incision and out of the eye, `CataractParams::deliver`), `--coarse`
+//! one second more, 1080, or 540 with `--push-only`), `--push-only` (the vectis
+//! stops with the lens pressed into the slit instead of delivering it out of
+//! the eye, `CataractParams::push_only`), `--coarse`
 //! (light meshes), `--preconditioner jacobi|exact|periodicN|async`,
 //! `--compliance factorized|exact|diagonal|rest|dense`, `--reuse N` (steps a
 //! factor serves the compliance, `ContactSettings::factor_reuse`), `--passes N`
@@ -39,7 +40,7 @@ struct Args {
     headless: bool,
     steps: usize,
     coarse: bool,
-    deliver: bool,
+    push_only: bool,
     preconditioner: PreconditionerKind,
     compliance: ComplianceMode,
     reuse: Option<u64>,
@@ -52,7 +53,7 @@ fn parse() -> Result<Args, String> {
         headless: false,
         steps: 0,
         coarse: false,
-        deliver: false,
+        push_only: false,
         preconditioner: PreconditionerKind::Async,
         compliance: ComplianceMode::Factorized,
         reuse: None,
@@ -75,7 +76,7 @@ fn parse() -> Result<Args, String> {
         match args[i].as_str() {
             "--headless" => a.headless = true,
             "--coarse" => a.coarse = true,
-            "--deliver" => a.deliver = true,
+            "--push-only" => a.push_only = true,
             "--no-predict" => a.predict = false,
             "--steps" => {
                 a.steps = number()? as usize;
@@ -218,12 +219,12 @@ fn main() -> ExitCode {
     } else {
         CataractParams::default()
     };
-    if args.deliver {
-        params = params.delivering();
+    if args.push_only {
+        params = params.push_only();
     }
     if args.steps == 0 {
         // The scripted path and one second more.
-        args.steps = if args.deliver { 900 } else { 540 };
+        args.steps = if args.push_only { 540 } else { 1080 };
     }
     let mut config = SoftTissueConfig {
         timestep: 1.0 / 60.0,

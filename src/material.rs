@@ -12,6 +12,11 @@
 //!
 //! Rayleigh damping `B = α M + β K` is given by [`RayleighDamping`]. With both
 //! coefficients zero no damping term is assembled at all.
+//!
+//! [`TissueMaterial::tool_friction`] sets the Coulomb friction of the
+//! tissue's surface against every tool, in place of each tool's own μ: a
+//! surface lubricated by viscoelastic (the sclera against the vectis in the
+//! cataract scene) is `Some(0.0)`, and its contacts get no friction rows.
 
 use crate::error::{Result, SoftTissueError, check_positive, check_range};
 use crate::math::Vec3;
@@ -82,6 +87,12 @@ pub struct TissueMaterial {
     pub stiffness: StiffnessField,
     /// Rayleigh damping.
     pub damping: RayleighDamping,
+    /// Coulomb friction of this tissue against every tool, in place of the
+    /// tool's μ ([`crate::contact::RigidTool::friction`]); `None` (the
+    /// default) uses each tool's own μ. `Some(0.0)` makes the surface
+    /// slippery for all tools (lubricated), and its tool contacts carry no
+    /// friction rows.
+    pub tool_friction: Option<f64>,
 }
 
 impl Default for TissueMaterial {
@@ -92,6 +103,7 @@ impl Default for TissueMaterial {
             young: 10e3,
             stiffness: StiffnessField::Uniform,
             damping: RayleighDamping::default(),
+            tool_friction: None,
         }
     }
 }
@@ -119,6 +131,12 @@ impl TissueMaterial {
         self
     }
 
+    /// Sets the friction of this tissue against every tool ([`Self::tool_friction`]).
+    pub fn with_tool_friction(mut self, mu: f64) -> Self {
+        self.tool_friction = Some(mu);
+        self
+    }
+
     /// Checks every parameter and returns a clear error for the first bad one.
     pub fn validate(&self) -> Result<()> {
         check_positive("density", self.density)?;
@@ -132,6 +150,9 @@ impl TissueMaterial {
         }
         check_range("damping.mass", self.damping.mass, 0.0, f64::MAX)?;
         check_range("damping.stiffness", self.damping.stiffness, 0.0, f64::MAX)?;
+        if let Some(mu) = self.tool_friction {
+            check_range("tool_friction", mu, 0.0, f64::MAX)?;
+        }
         if let StiffnessField::Radial {
             radii,
             core_radius,

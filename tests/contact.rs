@@ -626,6 +626,52 @@ fn no_friction_rows_when_mu_is_zero_and_no_work_without_contact() {
     assert_eq!((r.contacts, r.pairs_tested, r.rows, r.solves), (0, 0, 0, 0));
 }
 
+/// A tissue's own tool friction replaces every tool's μ: a lubricated
+/// surface (`Some(0.0)`) gets no friction rows from a rough tool, a rough one
+/// gets them from a frictionless tool, and a bad value is an error.
+#[test]
+fn tissue_tool_friction_overrides_the_tools_mu() {
+    let pressed = |tissue: Option<f64>, tool_mu: f64| {
+        let mut scene = Scene::new(ContactSettings::default()).unwrap();
+        let mut body = lens(6, PreconditionerKind::Periodic { every: 4 });
+        let mut material = body.material().clone();
+        material.tool_friction = tissue;
+        body.set_material(material).unwrap();
+        scene.add_body(body);
+        scene.add_tool(
+            RigidTool::new(
+                ToolShape::Sphere { radius: 3e-3 },
+                at(0.0, 0.0, 2.25e-3 + 3e-3 - 2e-4),
+            )
+            .unwrap()
+            .with_friction(tool_mu)
+            .unwrap(),
+        );
+        let r = scene.step(0.01).unwrap();
+        assert!(r.contacts > 0);
+        (r.contacts, r.rows, r.friction_contacts)
+    };
+    let (c, rows, f) = pressed(None, 0.8);
+    assert_eq!((rows, f), (3 * c, c), "the tool's μ applies by default");
+    let (c, rows, f) = pressed(Some(0.0), 0.8);
+    assert_eq!(
+        (rows, f),
+        (c, 0),
+        "a lubricated tissue has no friction rows"
+    );
+    let (c, rows, f) = pressed(Some(0.3), 0.0);
+    assert_eq!(
+        (rows, f),
+        (3 * c, c),
+        "the tissue's μ applies to a smooth tool"
+    );
+    let body = lens(6, PreconditionerKind::Periodic { every: 4 });
+    for bad in [-0.1, f64::NAN, f64::INFINITY] {
+        let material = body.material().clone().with_tool_friction(bad);
+        assert!(material.validate().is_err(), "tool friction {bad} accepted");
+    }
+}
+
 #[test]
 fn node_columns_are_reused_while_the_factor_is_unchanged() {
     let mut scene = Scene::new(ContactSettings::default()).unwrap();

@@ -281,8 +281,8 @@ fn coarse_cataract(
     bevy_soft_tissue::scenes::HeadlessSummary,
 ) {
     let mut params = bevy_soft_tissue::scenes::cataract::CataractParams::coarse();
-    if deliver {
-        params = params.delivering();
+    if !deliver {
+        params = params.push_only();
     }
     let config = SoftTissueConfig {
         timestep: 1.0 / 60.0,
@@ -335,19 +335,28 @@ fn cataract_scene_runs_headless() {
 
 #[test]
 fn cataract_scene_delivers_the_lens_through_the_incision() {
-    let (params, s) = coarse_cataract(true, 900);
+    let (params, s) = coarse_cataract(true, 1080);
     assert_no_penetration(&s);
-    // The eye is centred at the origin; the lens centre ends outside it, on the
-    // incision's side.
+    // The eye is centred at the origin; the lens centre ends outside it, more
+    // than the lens's half thickness beyond the sclera, on the incision's side.
     let (end, radius) = (s.lens_center.1, params.eye.radius);
-    assert!(end.norm() > radius, "lens centre at {} m", end.norm());
+    let half = bevy_soft_tissue::mesh::generate::LENS_RADII[2];
+    assert!(
+        end.norm() > radius + half,
+        "lens centre at {} m",
+        end.norm()
+    );
     let d = bevy_soft_tissue::scenes::cataract::incision_direction(&params);
     assert!(
-        end.normalize().dot(&d) > 0.9,
+        end.normalize().dot(&d) > 0.8,
         "not through the incision: {end:?}"
     );
+    // Stable: once its widest part is through, the spread lips squeeze the
+    // lens out like a seed, faster than the vectis (1.7 mm/s) — in this
+    // coarse scene at about 0.12 m/s, at full size 31-48 mm/s — and the
+    // medium slows it. An unstable step would send it off at metres per second.
     assert!(
-        s.max_lens_speed < 0.05,
+        s.max_lens_speed < 0.25,
         "peak lens speed {} m/s",
         s.max_lens_speed
     );

@@ -453,6 +453,7 @@ impl ContactSolver {
             let x0 = body.start_positions();
             let fixed = body.constraints();
             let extra = &self.slots[bi].extra;
+            let surface_mu = body.material().tool_friction;
             for (ti, tool) in tools.iter().enumerate() {
                 let tb = tool.aabb(margin + self.slots[bi].max_extra);
                 if !boxes_overlap(&self.slots[bi].aabb, &tb, 0.0) {
@@ -485,7 +486,7 @@ impl ContactSolver {
                         tangents: t,
                         gap: prox.distance,
                         slip: [t[0].dot(&rel), t[1].dot(&rel)],
-                        mu: tool.friction(),
+                        mu: surface_mu.unwrap_or(tool.friction()),
                         point: prox.point,
                         force: Vec3::zeros(),
                     });
