@@ -27,6 +27,31 @@ fn lens(cells: usize, kind: PreconditionerKind) -> DeformableBody {
     .unwrap()
 }
 
+/// The test lens with its base (z < −1.8 mm) fixed.
+fn based_lens(cells: usize, kind: PreconditionerKind) -> DeformableBody {
+    let mut body = lens(cells, kind);
+    body.fix_where(|p| p.z < -1.8e-3);
+    body
+}
+
+/// One step of `body` alone under a sphere (μ = `mu`) that touches its top:
+/// the scene and the step's contact report.
+fn sphere_touch(body: DeformableBody, mu: f64) -> (Scene, ContactReport) {
+    let mut scene = Scene::new(ContactSettings::default()).unwrap();
+    scene.add_body(body);
+    scene.add_tool(
+        RigidTool::new(
+            ToolShape::Sphere { radius: 3e-3 },
+            at(0.0, 0.0, 2.25e-3 + 3e-3 - 2e-4),
+        )
+        .unwrap()
+        .with_friction(mu)
+        .unwrap(),
+    );
+    let r = scene.step(0.01).unwrap();
+    (scene, r)
+}
+
 /// A contact solver with default settings but the alarm distance, for
 /// detection passes of a test's own.
 fn detector(alarm: f64) -> ContactSolver {
@@ -52,8 +77,7 @@ fn pressed_lens(kind: PreconditionerKind, mode: ComplianceMode) -> (Scene, f64) 
         ..Default::default()
     })
     .unwrap();
-    let mut body = lens(8, kind);
-    body.fix_where(|p| p.z < -1.8e-3);
+    let body = based_lens(8, kind);
     scene.add_body(body);
     let tool = RigidTool::new(
         ToolShape::Sphere { radius: 3e-3 },
@@ -212,8 +236,7 @@ fn contact_conditions_hold_after_every_step() {
         ..Default::default()
     })
     .unwrap();
-    let mut body = lens(8, PreconditionerKind::Periodic { every: 4 });
-    body.fix_where(|p| p.z < -1.8e-3);
+    let body = based_lens(8, PreconditionerKind::Periodic { every: 4 });
     let tol = 0.01 * body.mesh().min_edge_length();
     scene.add_body(body);
     let pose = |s: usize| {
@@ -604,16 +627,7 @@ fn no_friction_rows_when_mu_is_zero_and_no_work_without_contact() {
         scene.contact.report().rows,
         3 * scene.contact.report().contacts
     );
-    let mut scene = Scene::new(ContactSettings::default()).unwrap();
-    scene.add_body(lens(6, PreconditionerKind::Periodic { every: 4 }));
-    scene.add_tool(
-        RigidTool::new(
-            ToolShape::Sphere { radius: 3e-3 },
-            at(0.0, 0.0, 2.25e-3 + 3e-3 - 2e-4),
-        )
-        .unwrap(),
-    );
-    let r = scene.step(0.01).unwrap();
+    let (mut scene, r) = sphere_touch(lens(6, PreconditionerKind::Periodic { every: 4 }), 0.0);
     assert!(r.contacts > 0);
     assert_eq!(
         r.rows, r.contacts,
@@ -632,22 +646,11 @@ fn no_friction_rows_when_mu_is_zero_and_no_work_without_contact() {
 #[test]
 fn tissue_tool_friction_overrides_the_tools_mu() {
     let pressed = |tissue: Option<f64>, tool_mu: f64| {
-        let mut scene = Scene::new(ContactSettings::default()).unwrap();
         let mut body = lens(6, PreconditionerKind::Periodic { every: 4 });
         let mut material = body.material().clone();
         material.tool_friction = tissue;
         body.set_material(material).unwrap();
-        scene.add_body(body);
-        scene.add_tool(
-            RigidTool::new(
-                ToolShape::Sphere { radius: 3e-3 },
-                at(0.0, 0.0, 2.25e-3 + 3e-3 - 2e-4),
-            )
-            .unwrap()
-            .with_friction(tool_mu)
-            .unwrap(),
-        );
-        let r = scene.step(0.01).unwrap();
+        let (_, r) = sphere_touch(body, tool_mu);
         assert!(r.contacts > 0);
         (r.contacts, r.rows, r.friction_contacts)
     };
@@ -675,8 +678,7 @@ fn tissue_tool_friction_overrides_the_tools_mu() {
 #[test]
 fn node_columns_are_reused_while_the_factor_is_unchanged() {
     let mut scene = Scene::new(ContactSettings::default()).unwrap();
-    let mut body = lens(8, PreconditionerKind::Periodic { every: 1000 });
-    body.fix_where(|p| p.z < -1.8e-3);
+    let body = based_lens(8, PreconditionerKind::Periodic { every: 1000 });
     scene.add_body(body);
     scene.add_tool(
         RigidTool::new(
@@ -960,8 +962,7 @@ fn predicted_detection_linearizes_near_the_solution() {
                 ..Default::default()
             })
             .unwrap();
-            let mut body = lens(8, PreconditionerKind::Periodic { every: 1 });
-            body.fix_where(|p| p.z < -1.8e-3);
+            let body = based_lens(8, PreconditionerKind::Periodic { every: 1 });
             let tol = 0.01 * body.mesh().min_edge_length();
             scene.add_body(body);
             scene.add_tool(
