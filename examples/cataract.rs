@@ -167,6 +167,10 @@ fn headless(args: &Args, params: &CataractParams, config: SoftTissueConfig) -> E
                 "LCP sweeps, contact passes per step with 50-90 contacts: {:.1}, {:.2}",
                 s.lcp_50_90.0, s.lcp_50_90.1
             );
+            println!(
+                "contact passes: at most {} in a step, more than eight in {} steps",
+                s.max_passes.0, s.max_passes.1
+            );
             let moved = (s.lens_center.1 - s.lens_center.0) * 1e3;
             println!(
                 "lens centre moved by ({:.2}, {:.2}, {:.2}) mm, peak speed {:.1} mm/s",

@@ -147,6 +147,9 @@ pub struct HeadlessSummary {
     /// Steps with more than 90 contacts (the lens jammed in the slit), and their
     /// median step time in ms, if any.
     pub jam: (usize, Option<f64>),
+    /// The most contact passes a step ran, and how many steps ran more than
+    /// eight (see [`crate::contact::ContactSettings::max_passes`]).
+    pub max_passes: (usize, usize),
 }
 
 /// Runs the cataract scene without a window for `steps` fixed steps and
@@ -200,6 +203,7 @@ pub fn run_headless(
     let mut cg = 0usize;
     let mut max_pen: f64 = 0.0;
     let mut max_lens_speed: f64 = 0.0;
+    let mut max_passes = (0, 0);
     let mut done = 0;
     let mut last = app.world().resource::<SoftTissueDiagnostics>().steps;
     let mut guard = 0;
@@ -251,6 +255,8 @@ pub fn run_headless(
             band_lcp.1 += d.contact_passes;
         }
         cg += d.cg_iterations;
+        max_passes.0 = max_passes.0.max(d.contact_passes);
+        max_passes.1 += usize::from(d.contact_passes > 8);
         let world = app.world();
         if let Some(b) = lens_q.iter(world).next() {
             let v = b.velocities();
@@ -314,6 +320,7 @@ pub fn run_headless(
         median_ms_50_90: (!band.is_empty()).then(|| med(&mut band)),
         max_tissue_penetration: max_tissue,
         jam: (jam.len(), (!jam.is_empty()).then(|| med(&mut jam))),
+        max_passes,
     };
     Ok(summary)
 }
