@@ -973,6 +973,14 @@ fn unconverged_cg_rescues_with_a_fresh_factor() {
     }
 }
 
+/// The angle of rotation `m`, degrees.
+fn angle(m: Mat3) -> f64 {
+    ((m.trace() - 1.0) / 2.0)
+        .clamp(-1.0, 1.0)
+        .acos()
+        .to_degrees()
+}
+
 /// An element pushed through itself turns continuously while it is inverted,
 /// and once let go its force turns it back the way it came: with one face
 /// held, the pushed vertex returns to its place, not to the mirror image below.
@@ -1005,12 +1013,6 @@ fn inverted_element_turns_continuously_and_recovers() {
     let volume = |b: &DeformableBody| {
         let x = b.positions();
         (x[1] - x[0]).cross(&(x[2] - x[0])).dot(&(x[3] - x[0])) / 6.0
-    };
-    let angle = |m: Mat3| {
-        ((m.trace() - 1.0) / 2.0)
-            .clamp(-1.0, 1.0)
-            .acos()
-            .to_degrees()
     };
     // Vertex 3 driven down through the opposite face and sideways, then let go.
     let target = turned[0] + q * v3(0.4 * s, 0.3 * s, -0.6 * s);
@@ -1128,12 +1130,6 @@ fn rotation_warp_is_kept_only_where_it_fits() {
 fn inverted_rotation_follows_the_last_one() {
     use bevy_soft_tissue::math::polar_rotation_near;
     let turn = *Rotation3::from_axis_angle(&Unit::new_normalize(v3(1.0, 2.0, 0.5)), 0.7).matrix();
-    let angle = |m: Mat3| {
-        ((m.trace() - 1.0) / 2.0)
-            .clamp(-1.0, 1.0)
-            .acos()
-            .to_degrees()
-    };
     // Singular values 2, 0.5 ± d, and det F < 0.
     let f = |d: f64| turn * Mat3::from_diagonal(&v3(2.0, 0.5 + d, -(0.5 - d)));
     let (before, after) = (f(0.01), f(-0.01));

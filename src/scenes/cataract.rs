@@ -175,7 +175,7 @@ pub fn vectis_shape() -> ToolShape {
     // flat across its width, the squeezed lens slid sideways along it,
     // around its edge and back into the eye in about one run of four; with
     // sides raised 0.5 mm, in two runs of about sixty; with 1 mm, in
-    // none of twenty.
+    // none of twenty-four.
     for p in &mut vertices {
         p.z += 0.08 * (p.y * p.y) / b + 0.5 * (p.x * p.x) / a;
     }
@@ -289,7 +289,7 @@ impl ExtractionPath {
 /// up to 14 µm in one run of three, and 32 left 4.1 µm in one run of nine.
 /// Where the squeezed lens folds against a lip, a sclera vertex caught in the
 /// fold can need 20–40 passes, each leaving some 10 % less; 64 kept every step
-/// of 20 runs within 1 µm. A pass runs only while something still penetrates,
+/// of 35 runs within 1 µm. A pass runs only while something still penetrates,
 /// so quiet steps pay nothing, and a step needs more than eight passes about
 /// once in a hundred.
 pub fn contact_settings() -> ContactSettings {
