@@ -5,12 +5,15 @@
 
 use bevy_soft_tissue::core_prelude::*;
 use bevy_soft_tissue::mesh::generate::LENS_RADII;
+
+#[path = "../examples/common/mod.rs"]
+mod common;
 use criterion::{Criterion, criterion_group, criterion_main};
 use nalgebra::Rotation3;
 
 fn lens_body(kind: PreconditionerKind) -> (DeformableBody, Vec<usize>) {
     let mesh = generate::ellipsoid(LENS_RADII, 12).expect("lens mesh");
-    let material = bevy_soft_tissue::scenes::bench::lens_material();
+    let material = common::bench::lens_material();
     let settings = BodySettings {
         preconditioner: kind,
         cg: CgSettings {

@@ -30,11 +30,15 @@
 
 use std::process::ExitCode;
 
+use bevy_soft_tissue::body::BodySettings;
 use bevy_soft_tissue::contact::ComplianceMode;
 use bevy_soft_tissue::mesh::generate::LENS_RADII;
 use bevy_soft_tissue::plugin::SoftTissueConfig;
-use bevy_soft_tissue::scenes::{cataract::CataractParams, run_headless};
+use bevy_soft_tissue::scenes::cataract::CataractParams;
+
+mod common;
 use bevy_soft_tissue::solver::PreconditionerKind;
+use common::headless::run_headless;
 
 struct Args {
     headless: bool,
@@ -129,7 +133,11 @@ fn headless(args: &Args, params: &CataractParams, config: SoftTissueConfig) -> E
         "cataract scene, headless: {} steps of {:.4} s, preconditioner {:?}, compliance {:?}",
         args.steps, config.timestep, args.preconditioner, args.compliance
     );
-    match run_headless(params, config, args.steps) {
+    let body = BodySettings {
+        preconditioner: args.preconditioner,
+        ..Default::default()
+    };
+    match run_headless(params, config, body, args.steps) {
         Ok(s) => {
             let names = [
                 "assemble",
@@ -232,10 +240,9 @@ fn main() -> ExitCode {
     }
     let mut config = SoftTissueConfig {
         timestep: 1.0 / 60.0,
-        preconditioner: args.preconditioner,
-        compliance: args.compliance,
         ..Default::default()
     };
+    config.contact.compliance = args.compliance;
     if let Some(r) = args.reuse {
         config.contact.factor_reuse = r;
     }
@@ -259,7 +266,7 @@ fn main() -> ExitCode {
         return headless(&args, &params, config);
     }
     #[cfg(feature = "viewer")]
-    viewer::run(params, config);
+    viewer::run(params, config, args.preconditioner);
     ExitCode::SUCCESS
 }
 
@@ -270,7 +277,8 @@ mod viewer {
     use bevy::input::mouse::{AccumulatedMouseMotion, AccumulatedMouseScroll};
     use bevy::prelude::*;
     use bevy_egui::{EguiContexts, EguiPlugin, EguiPrimaryContextPass, egui};
-    use bevy_soft_tissue::SoftTissuePlugin;
+    use bevy_soft_tissue::SoftTissuePlugins;
+    use bevy_soft_tissue::body::BodySettings;
     use bevy_soft_tissue::contact::ComplianceMode;
     use bevy_soft_tissue::plugin::render::BodyColoring;
     use bevy_soft_tissue::plugin::{
@@ -298,7 +306,11 @@ mod viewer {
         target: Vec3,
     }
 
-    pub fn run(params: CataractParams, config: SoftTissueConfig) {
+    pub fn run(
+        params: CataractParams,
+        config: SoftTissueConfig,
+        preconditioner: PreconditionerKind,
+    ) {
         let (er, _) = incision_frame(&params);
         let target = Vec3::new(er.x as f32, er.y as f32, er.z as f32) * 0.007;
         App::new()
@@ -311,8 +323,14 @@ mod viewer {
                 ..Default::default()
             }))
             .add_plugins(EguiPlugin::default())
-            .add_plugins(SoftTissuePlugin::default().with_config(config))
-            .add_plugins(CataractScenePlugin { params })
+            .add_plugins(SoftTissuePlugins::default().with_config(config))
+            .add_plugins(CataractScenePlugin {
+                params,
+                body: BodySettings {
+                    preconditioner,
+                    ..Default::default()
+                },
+            })
             .insert_resource(ClearColor(Color::srgb(0.06, 0.07, 0.09)))
             .insert_resource(Ui {
                 preconditioner: 3,
@@ -506,7 +524,7 @@ mod viewer {
             .show(ctx, |ui| {
                 ui.heading("Effects");
                 ui.checkbox(&mut config.contacts, "contacts");
-                ui.checkbox(&mut config.friction, "friction");
+                ui.checkbox(&mut config.contact.friction, "friction");
                 ui.checkbox(&mut config.damping, "damping");
                 if ui.checkbox(&mut s.gravity, "gravity").changed() {
                     config.gravity = s.gravity.then_some(bevy::math::DVec3::new(0.0, 0.0, -9.81));
@@ -551,7 +569,7 @@ mod viewer {
                 ];
                 for (i, (n, m)) in modes.iter().enumerate() {
                     if ui.radio_value(&mut s.compliance, i, *n).changed() {
-                        config.compliance = *m;
+                        config.contact.compliance = *m;
                     }
                 }
                 ui.checkbox(

@@ -12,6 +12,8 @@
 
 use bevy_soft_tissue::core_prelude::*;
 use bevy_soft_tissue::mesh::generate::LENS_RADII;
+
+mod common;
 use nalgebra::Rotation3;
 use std::process::ExitCode;
 
@@ -38,7 +40,7 @@ fn parse_kind(s: &str) -> Option<PreconditionerKind> {
 
 fn run(kind: PreconditionerKind, steps: usize) -> Result<()> {
     let mesh = generate::ellipsoid(LENS_RADII, 12)?;
-    let material = bevy_soft_tissue::scenes::bench::lens_material();
+    let material = common::bench::lens_material();
     let settings = BodySettings {
         preconditioner: kind,
         cg: CgSettings {

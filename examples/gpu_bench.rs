@@ -11,10 +11,11 @@ use std::time::Instant;
 
 use bevy::prelude::*;
 use bevy::render::renderer::{RenderAdapterInfo, RenderDevice, RenderQueue};
+use bevy_soft_tissue::contact::ComplianceBackend;
 use bevy_soft_tissue::gpu::GpuCompliance;
-use bevy_soft_tissue::plugin::GpuMode;
 use bevy_soft_tissue::prelude::*;
-use bevy_soft_tissue::scenes::bench::{lens_body, pole_contacts};
+mod common;
+use common::bench::{lens_body, pole_contacts};
 
 fn median(mut v: Vec<f64>) -> f64 {
     v.sort_by(f64::total_cmp);
@@ -36,7 +37,7 @@ fn main() -> bevy_soft_tissue::error::Result<()> {
     if let Some(info) = app.world().get_resource::<RenderAdapterInfo>() {
         println!("adapter: {} ({:?})", info.name, info.device_type);
     }
-    let mut gpu = GpuCompliance::new(device.clone(), queue.clone(), GpuMode::On);
+    let mut gpu = GpuCompliance::new(device.clone(), queue.clone(), 0);
     // The paper-size lens; its factor is never refreshed, so every build uses the same one.
     let mut body = lens_body(PreconditionerKind::Periodic { every: 1_000_000 }, 12)?;
     body.fix_where(|p| p.z < -2.0e-3);
@@ -51,21 +52,21 @@ fn main() -> bevy_soft_tissue::error::Result<()> {
         let (mut cpu_t, mut gpu_t) = (Vec::new(), Vec::new());
         for _ in 0..5 {
             // A new solver each time: no cached columns, W from the body's current factor.
-            let build = |gpu: Option<&mut GpuCompliance>| -> bevy_soft_tissue::error::Result<f64> {
+            let build = |body: &mut DeformableBody,
+                         gpu: Option<&mut GpuCompliance>|
+             -> bevy_soft_tissue::error::Result<f64> {
                 let mut s = ContactSolver::new(ContactSettings {
                     factor_reuse: 0,
                     ..Default::default()
                 })?;
-                s.set_contacts(&cs, &[&body], 0.02)?;
+                s.set_contacts(&cs, &[&*body], 0.02)?;
                 let t0 = Instant::now();
-                match gpu {
-                    Some(g) => s.build_compliance_with(&[&body], Some(g))?,
-                    None => s.build_compliance(&[&body])?,
-                }
+                let backend = gpu.map(|g| g as &mut dyn ComplianceBackend);
+                s.build_compliance(&mut [body], PassKind::First, backend)?;
                 Ok(t0.elapsed().as_secs_f64() * 1e3)
             };
-            cpu_t.push(build(None)?);
-            gpu_t.push(build(Some(&mut gpu))?);
+            cpu_t.push(build(&mut body, None)?);
+            gpu_t.push(build(&mut body, Some(&mut gpu))?);
         }
         let (c, g) = (median(cpu_t), median(gpu_t));
         println!("{n:>8} {c:>14.3} {g:>10.3} {:>10.2}", g / c);

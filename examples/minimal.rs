@@ -12,7 +12,7 @@ fn main() {
     App::new()
         .add_plugins((
             MinimalPlugins,
-            SoftTissuePlugin::default().with_config(SoftTissueConfig {
+            SoftTissuePlugins::default().with_config(SoftTissueConfig {
                 gravity: Some(bevy::math::DVec3::new(0.0, 0.0, -9.81)),
                 ..Default::default()
             }),

@@ -55,6 +55,7 @@ use crate::material::TissueMaterial;
 use crate::math::{Mat3, Vec3, polar_rotation_fast, polar_rotation_near};
 use crate::mesh::{Surface, TetMesh};
 use crate::solver::cg::{self, CgReport, CgScratch, CgSettings};
+use crate::solver::columns::ColumnPrefetch;
 use crate::solver::{PreconditionerKind, PreconditionerState, PreconditionerStats};
 use std::sync::Arc;
 
@@ -69,8 +70,6 @@ pub struct BodySettings {
     pub cg: CgSettings,
     /// Gravity acceleration, if any.
     pub gravity: Option<Vec3>,
-    /// Contact compliance of this body; `None` uses the contact solver's default.
-    pub compliance: Option<crate::contact::ComplianceMode>,
     /// Apply the material's Rayleigh damping (no damping term is assembled when
     /// false or when both coefficients are zero).
     pub damping: bool,
@@ -83,7 +82,6 @@ impl Default for BodySettings {
             rotation: RotationMethod::Polar,
             cg: CgSettings::default(),
             gravity: None,
-            compliance: None,
             damping: true,
         }
     }
@@ -310,6 +308,12 @@ impl DeformableBody {
     /// The preconditioner (its factor is reused by contact compliance).
     pub fn preconditioner(&self) -> &PreconditionerState {
         &self.precond
+    }
+
+    /// The node-column hand-over between the contact compliance and the
+    /// background factorizer (see [`ColumnPrefetch`]).
+    pub fn column_prefetch_mut(&mut self) -> &mut ColumnPrefetch {
+        self.precond.column_prefetch_mut()
     }
 
     /// Node rotations of the last step (identity unless computed).

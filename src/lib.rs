@@ -4,14 +4,19 @@
 //!
 //! The crate has two layers:
 //!
-//! - **The numerical core** — [`mesh`], [`material`], [`fem`], [`solver`],
-//!   [`body`], [`contact`], [`scene`]. It has no Bevy types, works in `f64`, takes its
-//!   scratch memory explicitly and allocates nothing inside per-step loops. It
-//!   can be used and tested on its own.
-//! - **The Bevy plugin** — [`plugin`]: a thin ECS layer over the core
-//!   ([`SoftTissuePlugin`], chained [`SoftTissueSystems`]), the cataract scene
-//!   ([`scenes`]) and, with the `gpu` feature, the compute-shader compliance
-//!   (`gpu`).
+//! - **The numerical core** — [`math`], [`error`] → [`mesh`] → [`material`] →
+//!   [`fem`] → [`solver`] → [`body`] → [`contact`] → [`scene`] (each module
+//!   uses only those before it; [`scenes`] builds ready-made scenes on top). It
+//!   has no Bevy types, works in `f64`, takes its scratch memory explicitly and
+//!   allocates nothing inside per-step loops. It builds without Bevy
+//!   (`--no-default-features`) and can be used and tested on its own.
+//! - **The Bevy plugin** (feature `bevy`, on by default) — `plugin`: a thin ECS
+//!   layer over the core. `SoftTissuePlugins` (a plugin group) is the entry;
+//!   its systems run in the chained `SoftTissueSystems` sets and call the
+//!   same phase functions as [`scene::Scene::step`] ([`scene::phases`]). The
+//!   cataract scene as a plugin (`scenes::CataractScenePlugin`), the `.msh` /
+//!   TetGen asset loader (`plugin::assets`) and, with the `gpu` feature, the
+//!   compute-shader compliance (`gpu`) sit beside it.
 //!
 //! ## Method
 //! Co-rotational linear tetrahedra with per-element Young's modulus, the
@@ -47,12 +52,14 @@ pub mod gpu;
 pub mod material;
 pub mod math;
 pub mod mesh;
+#[cfg(feature = "bevy")]
 pub mod plugin;
 pub mod scene;
 pub mod scenes;
 pub mod solver;
 
-pub use plugin::{SoftTissuePlugin, SoftTissueSystems};
+#[cfg(feature = "bevy")]
+pub use plugin::{SoftTissuePlugins, SoftTissueSystems};
 
 /// The most used items, for Bevy apps: import it next to `bevy::prelude::*`
 /// (it exports no names that clash with Bevy's prelude; the core's `f64`
@@ -60,18 +67,19 @@ pub use plugin::{SoftTissuePlugin, SoftTissueSystems};
 pub mod prelude {
     pub use crate::body::{BodySettings, DeformableBody, NodeConstraint, StepReport, StepTimings};
     pub use crate::contact::{
-        ComplianceMode, Contact, ContactReport, ContactSettings, ContactSolver, LcpSettings, Pose,
-        RigidTool, ToolShape,
+        ComplianceMode, Contact, ContactReport, ContactSettings, ContactSolver, LcpSettings,
+        PassKind, Pose, RigidTool, ToolShape,
     };
     pub use crate::error::SoftTissueError;
     pub use crate::fem::RotationMethod;
     pub use crate::material::{RayleighDamping, StiffnessField, TissueMaterial, Transition};
     pub use crate::math::v3;
     pub use crate::mesh::{Surface, TetMesh, ValidateOptions, generate, io};
+    #[cfg(feature = "bevy")]
     pub use crate::plugin::{
         BodyContacts, ComplianceOverride, FixedNodes, GpuMode, PreconditionerOverride, SoftBody,
-        SoftTissueConfig, SoftTissueContacts, SoftTissueDiagnostics, SoftTissuePlugin,
-        SoftTissueSystems, Tool, ToolReaction,
+        SoftBodyFromAsset, SoftTissueConfig, SoftTissueContacts, SoftTissueDiagnostics,
+        SoftTissuePlugins, SoftTissueSystems, TetMeshAsset, Tool, ToolReaction,
     };
     pub use crate::scene::Scene;
     pub use crate::solver::PreconditionerKind;

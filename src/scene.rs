@@ -1,12 +1,63 @@
-//! A complete simulation without Bevy: bodies, tools and the contact pipeline.
+//! A complete simulation without Bevy, and the step's phases that
+//! [`Scene::step`] and the plugin's systems share.
 //!
-//! [`Scene::step`] runs the same phases, in the same order, as the plugin's
-//! system sets: assemble → factorize → free motion → detect → compliance →
-//! LCP → correct. Contact phases are skipped when nothing can touch.
+//! The pipeline, written once in [`phases`]:
+//!
+//! ```text
+//! per body:   phases::assemble → phases::factorize → phases::free_motion
+//! contacts:   ContactSolver::detect → build_compliance → solve_lcp → correct   (PassKind::First)
+//!             ContactSolver::refine                                             (PassKind::Refine)
+//! per tool:   phases::end_step
+//! ```
+//!
+//! [`Scene::step`] runs them in that order; the plugin runs each in its own
+//! system set (`SoftTissueSystems`). Contact phases are skipped when nothing
+//! can touch ([`phases::can_touch`]).
 
 use crate::body::DeformableBody;
-use crate::contact::{ContactReport, ContactSettings, ContactSolver, RigidTool};
+use crate::contact::{ComplianceBackend, ContactReport, ContactSettings, ContactSolver, RigidTool};
 use crate::error::Result;
+
+/// The phases of a step, shared by [`Scene::step`] and the plugin.
+pub mod phases {
+    use crate::body::DeformableBody;
+    use crate::contact::{ContactSolver, RigidTool};
+    use crate::error::Result;
+    use crate::solver::cg::CgReport;
+
+    /// Whether contact work is needed: a body, and a tool or a second body.
+    pub fn can_touch(bodies: usize, tools: usize) -> bool {
+        bodies > 0 && (tools > 0 || bodies > 1)
+    }
+
+    /// Assembly of one body: asks for the node rotations its compliance
+    /// needs when contacts can happen, then element rotations, forces, `A`, `b`.
+    pub fn assemble(
+        body: &mut DeformableBody,
+        contact: &ContactSolver,
+        touch: bool,
+        h: f64,
+    ) -> Result<()> {
+        body.request_node_rotations(touch && contact.needs_node_rotations(body.id()));
+        body.assemble(h)
+    }
+
+    /// Preconditioner refresh of one body (factor swap, hand-off to the worker, warp).
+    pub fn factorize(body: &mut DeformableBody) -> Result<()> {
+        body.update_preconditioner()
+    }
+
+    /// Conjugate gradient and integration of one body to its free motion.
+    pub fn free_motion(body: &mut DeformableBody) -> Result<CgReport> {
+        body.solve_free_motion()
+    }
+
+    /// The end of a step for a tool: its pose becomes the reference for the
+    /// next step's motion.
+    pub fn end_step(tool: &mut RigidTool) {
+        tool.end_step();
+    }
+}
 
 /// Bodies, tools and their contact solver.
 #[derive(Debug, Default)]
@@ -43,32 +94,35 @@ impl Scene {
 
     /// Whether contact work is needed: a tool, or at least two bodies.
     pub fn can_touch(&self) -> bool {
-        !self.bodies.is_empty() && (!self.tools.is_empty() || self.bodies.len() > 1)
+        phases::can_touch(self.bodies.len(), self.tools.len())
     }
 
     /// Advances the scene by `h` seconds.
     pub fn step(&mut self, h: f64) -> Result<ContactReport> {
+        self.step_with(h, None)
+    }
+
+    /// [`Self::step`] with a compliance backend (the GPU) for the first
+    /// contact pass of `Factorized` bodies.
+    pub fn step_with(
+        &mut self,
+        h: f64,
+        backend: Option<&mut dyn ComplianceBackend>,
+    ) -> Result<ContactReport> {
         let touch = self.can_touch();
         for b in &mut self.bodies {
-            let rest_mode = b
-                .settings()
-                .compliance
-                .unwrap_or(self.contact.settings().compliance)
-                == crate::contact::ComplianceMode::RestPrecomputed;
-            b.request_node_rotations(rest_mode && touch);
-            b.assemble(h)?;
-            b.update_preconditioner()?;
+            phases::assemble(b, &self.contact, touch, h)?;
+            phases::factorize(b)?;
         }
         for b in &mut self.bodies {
-            b.solve_free_motion()?;
+            phases::free_motion(b)?;
         }
-        if self.can_touch() {
-            let mut bodies: Vec<&mut DeformableBody> = self.bodies.iter_mut().collect();
-            let mut tools: Vec<&mut RigidTool> = self.tools.iter_mut().collect();
-            self.contact.step(&mut bodies, &mut tools, h)?;
+        if touch {
+            self.contact
+                .step(&mut self.bodies, &mut self.tools, h, backend)?;
         }
         for t in &mut self.tools {
-            t.end_step();
+            phases::end_step(t);
         }
         Ok(*self.contact.report())
     }

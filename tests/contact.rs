@@ -1,6 +1,7 @@
 //! Acceptance tests of the contact pipeline: compliance accuracy, contact
 //! conditions, friction, the paper's Fig. 3 setting, two bodies, bad input.
 
+use bevy_soft_tissue::contact::NO_TOOLS;
 use bevy_soft_tissue::core_prelude::*;
 use bevy_soft_tissue::mesh::generate::LENS_RADII;
 use nalgebra::{DMatrix, Isometry3, Translation3, UnitQuaternion};
@@ -150,15 +151,25 @@ fn max_rel_diff(w: &[f64], reference: &DMatrix<f64>) -> f64 {
     d / scale
 }
 
+/// Detection and compliance of the first pass at the scene's current state.
+fn detect_and_build(scene: &mut Scene, h: f64) {
+    scene
+        .contact
+        .detect(&scene.bodies, &scene.tools, h, PassKind::First)
+        .unwrap();
+    scene
+        .contact
+        .build_compliance(&mut scene.bodies, PassKind::First, None)
+        .unwrap();
+}
+
 #[test]
 fn factorized_w_matches_dense_reference_from_same_factor() {
     for mode in [ComplianceMode::Factorized, ComplianceMode::DenseRows] {
         let (mut scene, h) = pressed_lens(PreconditionerKind::Periodic { every: 5 }, mode);
         // Recompute W at the current state and compare against the dense reference.
+        detect_and_build(&mut scene, h);
         let b = &scene.bodies[0];
-        let t = &scene.tools[0];
-        scene.contact.detect(&[b], &[t], h).unwrap();
-        scene.contact.build_compliance(&[b]).unwrap();
         let (w, m) = scene.contact.delassus();
         assert!(
             scene.contact.report().friction_contacts > 3,
@@ -181,10 +192,8 @@ fn factorized_w_matches_dense_reference_from_same_factor() {
 #[test]
 fn exact_w_matches_dense_inverse_of_current_matrix() {
     let (mut scene, h) = pressed_lens(PreconditionerKind::Jacobi, ComplianceMode::Exact);
+    detect_and_build(&mut scene, h);
     let b = &scene.bodies[0];
-    let t = &scene.tools[0];
-    scene.contact.detect(&[b], &[t], h).unwrap();
-    scene.contact.build_compliance(&[b]).unwrap();
     let (w, m) = scene.contact.delassus();
     assert!(m > 0);
     let a = b.system_matrix().to_dense();
@@ -507,7 +516,9 @@ fn two_bodies_pressed_together() {
         // Re-detect at the corrected positions: no vertex deeper than the tolerance.
         let (ba, bb) = (&scene.bodies[0], &scene.bodies[1]);
         let mut probe = detector(2e-4);
-        probe.detect(&[ba, bb], &[], 0.003).unwrap();
+        probe
+            .detect(&[ba, bb], &NO_TOOLS, 0.003, PassKind::First)
+            .unwrap();
         let worst = probe
             .contacts()
             .iter()
@@ -726,10 +737,8 @@ fn async_worker_precomputes_contact_columns() {
         r.contacts
     );
     // W from the cached (precomputed) columns matches the dense reference of the factor.
+    detect_and_build(&mut scene, h);
     let b = &scene.bodies[0];
-    let t = &scene.tools[0];
-    scene.contact.detect(&[b], &[t], h).unwrap();
-    scene.contact.build_compliance(&[b]).unwrap();
     assert_eq!(
         scene.contact.report().solves,
         0,
@@ -889,7 +898,9 @@ fn corner_contact(
     alarm: f64,
 ) -> Option<(bevy_soft_tissue::contact::Contact, f64)> {
     let mut solver = detector(alarm);
-    solver.detect(&[slab, block], &[], 0.01).unwrap();
+    solver
+        .detect(&[slab, block], &NO_TOOLS, 0.01, PassKind::First)
+        .unwrap();
     let c = solver
         .contacts()
         .iter()

@@ -9,6 +9,9 @@ use bevy_soft_tissue::fem::assembly::{BlockCsr, BlockPattern};
 use bevy_soft_tissue::math::polar_rotation;
 use bevy_soft_tissue::mesh::generate::{EyeShell, Incision, LENS_RADII};
 use bevy_soft_tissue::solver::ldlt::LdltSymbolic;
+#[path = "../examples/common/mod.rs"]
+mod common;
+
 use nalgebra::{Rotation3, Unit};
 use std::sync::Arc;
 use std::sync::atomic::Ordering;
@@ -204,7 +207,7 @@ fn exact_ldlt_converges_in_at_most_two_iterations() {
 }
 
 fn lens_material() -> TissueMaterial {
-    bevy_soft_tissue::scenes::bench::lens_material()
+    common::bench::lens_material()
 }
 
 /// Squeezes and twists the paper-size lens through large deformation by driving
@@ -1145,4 +1148,23 @@ fn inverted_rotation_follows_the_last_one() {
     // Positive determinant: the polar rotation, whatever the last one was.
     let g = turn * Mat3::from_diagonal(&v3(1.2, 0.9, 0.8));
     assert!((polar_rotation_near(&g, &Mat3::identity()) - turn).norm() < 1e-12);
+}
+
+/// The meshes shipped in `assets/` are what `examples/write_meshes.rs` writes
+/// from the generators (the paper-size lens and the default scene's eye).
+#[test]
+fn shipped_meshes_match_their_generators() {
+    let p = bevy_soft_tissue::scenes::cataract::CataractParams::default();
+    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("assets");
+    for (name, mesh) in [
+        (
+            "lens.msh",
+            generate::ellipsoid(LENS_RADII, p.lens_cells).unwrap(),
+        ),
+        ("eye.msh", generate::eye_shell(&p.eye).unwrap()),
+    ] {
+        let shipped = io::load_msh(dir.join(name), ValidateOptions::default()).unwrap();
+        assert_eq!(shipped.tets(), mesh.tets(), "{name}");
+        assert_eq!(shipped.positions(), mesh.positions(), "{name}");
+    }
 }

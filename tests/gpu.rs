@@ -14,8 +14,11 @@ use bevy_soft_tissue::math::Vec3 as DVec3;
 use bevy_soft_tissue::mesh::generate::LENS_RADII;
 use bevy_soft_tissue::plugin::GpuMode;
 use bevy_soft_tissue::prelude::*;
-use bevy_soft_tissue::scenes::bench::pole_contacts;
 use bevy_soft_tissue::scenes::{CataractScenePlugin, cataract::CataractParams};
+use common::bench::pole_contacts;
+
+#[path = "../examples/common/mod.rs"]
+mod common;
 
 fn vulkan_available() -> bool {
     let mut desc = wgpu::InstanceDescriptor::new_without_display_handle();
@@ -74,15 +77,16 @@ fn gpu_w_matches_cpu_w_on_lens_with_90_friction_contacts() {
 
     let mut cpu = ContactSolver::new(ContactSettings::default()).unwrap();
     cpu.set_contacts(&contacts, &[&body], 0.02).unwrap();
-    cpu.build_compliance(&[&body]).unwrap();
+    cpu.build_compliance(&mut [&mut body], PassKind::First, None)
+        .unwrap();
     let (wc, m) = cpu.delassus();
     assert_eq!(m, 270);
 
-    let mut gpu = GpuCompliance::new(device, queue, GpuMode::On);
+    let mut gpu = GpuCompliance::new(device, queue, 0);
     let mut on_gpu = ContactSolver::new(ContactSettings::default()).unwrap();
     on_gpu.set_contacts(&contacts, &[&body], 0.02).unwrap();
     on_gpu
-        .build_compliance_with(&[&body], Some(&mut gpu))
+        .build_compliance(&mut [&mut body], PassKind::First, Some(&mut gpu))
         .unwrap();
     let (wg, m2) = on_gpu.delassus();
     assert_eq!(m, m2);
@@ -100,7 +104,7 @@ fn gpu_w_matches_cpu_w_on_lens_with_90_friction_contacts() {
     );
     // A second build with the same factor reuses the uploaded factor.
     on_gpu
-        .build_compliance_with(&[&body], Some(&mut gpu))
+        .build_compliance(&mut [&mut body], PassKind::First, Some(&mut gpu))
         .unwrap();
     assert_eq!(gpu.uploads, 1);
 }
@@ -109,15 +113,18 @@ fn gpu_w_matches_cpu_w_on_lens_with_90_friction_contacts() {
 fn cataract_scene_runs_with_the_gpu_path_on() {
     let h = 1.0 / 60.0;
     let Some(mut app) = render_app(|app| {
-        app.add_plugins(SoftTissuePlugin::default().with_config(SoftTissueConfig {
+        app.add_plugins(SoftTissuePlugins::default().with_config(SoftTissueConfig {
             timestep: h,
             gpu: GpuMode::On,
-            // Deterministic refresh (the async worker's timing changes the trajectory).
-            preconditioner: PreconditionerKind::Periodic { every: 4 },
             ..Default::default()
         }))
         .add_plugins(CataractScenePlugin {
             params: CataractParams::coarse(),
+            // Deterministic refresh (the async worker's timing changes the trajectory).
+            body: BodySettings {
+                preconditioner: PreconditionerKind::Periodic { every: 4 },
+                ..Default::default()
+            },
         })
         .insert_resource(bevy::time::TimeUpdateStrategy::ManualDuration(
             Duration::from_secs_f64(h),

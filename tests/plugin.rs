@@ -1,4 +1,4 @@
-//! Headless app tests of `SoftTissuePlugin` (MinimalPlugins + manual time steps).
+//! Headless app tests of `SoftTissuePlugins` (MinimalPlugins + manual time steps).
 
 use std::sync::atomic::Ordering;
 use std::time::Duration;
@@ -13,7 +13,10 @@ use bevy_soft_tissue::plugin::{
     SoftBody, SoftTissueConfig, SoftTissueDiagnostics, Tool, ToolReaction,
 };
 use bevy_soft_tissue::prelude::{BodyContacts, v3};
-use bevy_soft_tissue::{SoftTissuePlugin, SoftTissueSystems};
+use bevy_soft_tissue::{SoftTissuePlugins, SoftTissueSystems};
+
+#[path = "../examples/common/mod.rs"]
+mod common;
 
 const H: f64 = 0.01;
 
@@ -21,7 +24,7 @@ fn app(config: SoftTissueConfig) -> App {
     let mut app = App::new();
     app.add_plugins((
         MinimalPlugins,
-        SoftTissuePlugin::default().with_config(config),
+        SoftTissuePlugins::default().with_config(config),
     ))
     .insert_resource(TimeUpdateStrategy::ManualDuration(Duration::from_secs_f64(
         H,
@@ -278,7 +281,7 @@ fn coarse_cataract(
     steps: usize,
 ) -> (
     bevy_soft_tissue::scenes::cataract::CataractParams,
-    bevy_soft_tissue::scenes::HeadlessSummary,
+    common::headless::HeadlessSummary,
 ) {
     let mut params = bevy_soft_tissue::scenes::cataract::CataractParams::coarse();
     if !deliver {
@@ -286,17 +289,20 @@ fn coarse_cataract(
     }
     let config = SoftTissueConfig {
         timestep: 1.0 / 60.0,
+        ..Default::default()
+    };
+    let body = bevy_soft_tissue::body::BodySettings {
         preconditioner: bevy_soft_tissue::solver::PreconditionerKind::Periodic { every: 4 },
         ..Default::default()
     };
-    let s = bevy_soft_tissue::scenes::run_headless(&params, config, steps).unwrap();
+    let s = common::headless::run_headless(&params, config, body, steps).unwrap();
     println!("{s:?}");
     (params, s)
 }
 
 /// Penetration, checked at the end of every step against the vectis and
 /// between lens and sclera, stays within the tolerance.
-fn assert_no_penetration(s: &bevy_soft_tissue::scenes::HeadlessSummary) {
+fn assert_no_penetration(s: &common::headless::HeadlessSummary) {
     assert!(
         s.max_penetration <= s.tolerance && s.max_tissue_penetration <= s.tolerance,
         "penetration {} (lens-sclera {}) > {}",
@@ -385,4 +391,134 @@ fn timestep_changes_reach_the_fixed_clock() {
     app.update();
     assert!(app.world().resource::<SoftTissueDiagnostics>().errors > 0);
     assert!((fixed_timestep(&app) - 0.004).abs() < 1e-9);
+}
+
+/// The plugin group's members can be left out: without `ContactPlugin` the
+/// same falling cube that `body_falls_onto_fixed_tool_and_stays_above_it`
+/// keeps above the plate falls through it, and no contact work runs.
+#[test]
+fn contact_plugin_can_be_disabled() {
+    use bevy::app::PluginGroup;
+    use bevy_soft_tissue::plugin::ContactPlugin;
+    let mut app = App::new();
+    app.add_plugins((
+        MinimalPlugins,
+        SoftTissuePlugins::default()
+            .with_config(SoftTissueConfig {
+                timestep: H,
+                gravity: Some(bevy::math::DVec3::new(0.0, 0.0, -9.81)),
+                ..Default::default()
+            })
+            .build()
+            .disable::<ContactPlugin>(),
+    ))
+    .insert_resource(TimeUpdateStrategy::ManualDuration(Duration::from_secs_f64(
+        H,
+    )));
+    let body = app.world_mut().spawn(cube(4e-3, 3, 1e-3)).id();
+    app.world_mut().spawn((
+        Tool::new(
+            ToolShape::Box {
+                half_extents: v3(0.05, 0.05, 0.005),
+            },
+            0.3,
+        )
+        .unwrap(),
+        Transform::from_xyz(0.0, 0.0, -0.005),
+    ));
+    steps(&mut app, 80);
+    let w = app.world();
+    let min_z = w
+        .get::<SoftBody>(body)
+        .unwrap()
+        .positions()
+        .iter()
+        .map(|p| p.z)
+        .fold(f64::INFINITY, f64::min);
+    assert!(
+        min_z < -1e-3,
+        "without contacts the body falls into the plate: {min_z}"
+    );
+    let d = w.resource::<SoftTissueDiagnostics>();
+    assert_eq!(
+        (d.detect_runs, d.compliance_builds, d.lcp_solves),
+        (0, 0, 0)
+    );
+    assert_eq!(d.errors, 0);
+}
+
+/// A `.msh` file through the `AssetServer`: the shipped lens loads as a
+/// `TetMeshAsset` and a `SoftBodyFromAsset` becomes a stepping `SoftBody`; a
+/// malformed file fails to load with the parser's message.
+#[test]
+fn lens_loads_through_the_asset_server() {
+    use bevy::asset::LoadState;
+    use bevy_soft_tissue::plugin::{SoftBodyFromAsset, TetMeshAsset};
+    let mut app = App::new();
+    app.add_plugins((
+        MinimalPlugins,
+        AssetPlugin::default(),
+        SoftTissuePlugins::default().with_config(SoftTissueConfig {
+            timestep: H,
+            ..Default::default()
+        }),
+    ))
+    .insert_resource(TimeUpdateStrategy::ManualDuration(Duration::from_secs_f64(
+        H,
+    )));
+    app.finish();
+    app.cleanup();
+    let server = app.world().resource::<AssetServer>().clone();
+    let lens: Handle<TetMeshAsset> = server.load("lens.msh");
+    let entity = app
+        .world_mut()
+        .spawn(SoftBodyFromAsset::new(
+            lens.clone(),
+            TissueMaterial::new(1000.0, 5e3, 0.45),
+        ))
+        .id();
+    // A malformed file, written where the asset server reads (removed below).
+    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("assets");
+    let bad_name = format!("broken-{}.msh", std::process::id());
+    std::fs::write(
+        dir.join(&bad_name),
+        b"$MeshFormat\n4.1 0 8\n$EndMeshFormat\n$Nodes\n1 2 1\n",
+    )
+    .unwrap();
+    let bad: Handle<TetMeshAsset> = server.load(bad_name.clone());
+    let mut guard = 0;
+    while app.world().get::<SoftBody>(entity).is_none()
+        || !matches!(server.get_load_state(&bad), Some(LoadState::Failed(_)))
+    {
+        app.update();
+        std::thread::sleep(Duration::from_millis(2));
+        guard += 1;
+        assert!(
+            guard < 5000,
+            "assets did not settle: {:?}",
+            server.get_load_state(&bad)
+        );
+    }
+    let _ = std::fs::remove_file(dir.join(&bad_name));
+    let mesh = app
+        .world()
+        .resource::<Assets<TetMeshAsset>>()
+        .get(&lens)
+        .unwrap()
+        .0
+        .clone();
+    let expected = generate::ellipsoid(bevy_soft_tissue::mesh::generate::LENS_RADII, 12).unwrap();
+    assert_eq!(mesh.num_vertices(), expected.num_vertices());
+    assert_eq!(mesh.tets(), expected.tets());
+    assert!(app.world().get::<SoftBodyFromAsset>(entity).is_none());
+    steps(&mut app, 3);
+    let body = app.world().get::<SoftBody>(entity).unwrap();
+    assert_eq!(body.num_nodes(), expected.num_vertices());
+    assert!(body.step_index() >= 3, "{}", body.step_index());
+    assert!(body.report().cg.converged);
+    let Some(LoadState::Failed(err)) = server.get_load_state(&bad) else {
+        unreachable!()
+    };
+    let msg = err.to_string();
+    assert!(msg.contains("malformed") && msg.contains("msh"), "{msg}");
 }

@@ -19,19 +19,20 @@
 //! Every GPU call runs inside a wgpu validation error scope: a validation
 //! error becomes [`SoftTissueError::Gpu`] instead of a log line.
 //!
-//! [`GpuMode`] selects the path: off, always on, or automatic above a contact
-//! count.
+//! Device buffers persist between steps and grow (to the next power of two)
+//! only when a step needs more; the host-side staging vectors are kept too,
+//! so a step allocates nothing once the largest contact set has been seen.
+//! Which bodies use the GPU is [`GpuCompliance::min_rows`] (the plugin sets it
+//! from its `GpuMode`).
 
 use std::collections::HashMap;
 
 use bevy::render::renderer::{RenderDevice, RenderQueue};
 use wgpu::util::DeviceExt;
 
-use crate::contact::{ComplianceBackend, JacEntry};
+use crate::contact::{ComplianceBackend, FactorKey, JacEntry};
 use crate::error::{Result, SoftTissueError};
 use crate::solver::ldlt::{LdltFactor, NONE};
-
-pub use crate::plugin::GpuMode;
 
 /// Adds the plugins of a windowless app with a render device (no window, no
 /// camera rendering): enough for `Res<RenderDevice>` / `Res<RenderQueue>` in
@@ -72,7 +73,7 @@ struct Pipelines {
 }
 
 struct UploadedFactor {
-    version: u64,
+    key: FactorKey,
     n: u32,
     col_ptr: wgpu::Buffer,
     row_idx: wgpu::Buffer,
@@ -81,14 +82,72 @@ struct UploadedFactor {
     dinv: wgpu::Buffer,
 }
 
+/// A device buffer kept between steps, grown when a step needs more.
+#[derive(Default)]
+struct GrowBuffer {
+    buf: Option<wgpu::Buffer>,
+    size: u64,
+}
+
+impl GrowBuffer {
+    /// The buffer, at least `bytes` long (at least 4: wgpu rejects empty bindings).
+    fn ensure(
+        &mut self,
+        device: &wgpu::Device,
+        label: &'static str,
+        usage: wgpu::BufferUsages,
+        bytes: u64,
+    ) -> &wgpu::Buffer {
+        let bytes = bytes.max(4);
+        if self.buf.is_none() || self.size < bytes {
+            let size = bytes.next_power_of_two();
+            self.buf = Some(device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some(label),
+                size,
+                usage,
+                mapped_at_creation: false,
+            }));
+            self.size = size;
+        }
+        self.buf.as_ref().expect("created above")
+    }
+}
+
+/// The per-step buffers, host and device.
+#[derive(Default)]
+struct StepBuffers {
+    nodes: Vec<u32>,
+    path: Vec<u32>,
+    path_offsets: Vec<usize>,
+    paths: Vec<u32>,
+    rows: Vec<usize>,
+    by_row: Vec<(usize, u32, [f32; 3])>,
+    row_ptr: Vec<u32>,
+    ent_node: Vec<u32>,
+    ent_j: Vec<f32>,
+    out: Vec<f32>,
+    params: GrowBuffer,
+    paths_buf: GrowBuffer,
+    z: GrowBuffer,
+    work: GrowBuffer,
+    gram: GrowBuffer,
+    w: GrowBuffer,
+    row_ptr_buf: GrowBuffer,
+    ent_node_buf: GrowBuffer,
+    ent_j_buf: GrowBuffer,
+    readback: GrowBuffer,
+}
+
 /// The GPU compliance builder (a [`ComplianceBackend`]).
 pub struct GpuCompliance {
     device: RenderDevice,
     queue: RenderQueue,
     pipelines: Option<Pipelines>,
     factors: HashMap<u64, UploadedFactor>,
-    /// Which bodies and steps use the GPU.
-    pub mode: GpuMode,
+    step: StepBuffers,
+    /// The fewest constraint rows a body needs for its `W` to be built here;
+    /// bodies with fewer are left to the CPU (0: every body).
+    pub min_rows: usize,
     /// Compute dispatches issued so far.
     pub dispatches: u64,
     /// Factor uploads so far.
@@ -100,7 +159,7 @@ pub struct GpuCompliance {
 impl std::fmt::Debug for GpuCompliance {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("GpuCompliance")
-            .field("mode", &self.mode)
+            .field("min_rows", &self.min_rows)
             .field("dispatches", &self.dispatches)
             .field("uploads", &self.uploads)
             .finish()
@@ -111,6 +170,11 @@ fn gpu_err(e: impl std::fmt::Display) -> SoftTissueError {
     SoftTissueError::Gpu(e.to_string())
 }
 
+const STORAGE: wgpu::BufferUsages = wgpu::BufferUsages::STORAGE
+    .union(wgpu::BufferUsages::COPY_SRC)
+    .union(wgpu::BufferUsages::COPY_DST);
+
+/// A storage buffer holding `bytes` for good (the factor's, once per version).
 fn storage(device: &wgpu::Device, label: &str, bytes: &[u8]) -> wgpu::Buffer {
     // wgpu rejects zero-sized bindings: pad empty arrays to one word.
     let padded;
@@ -123,24 +187,38 @@ fn storage(device: &wgpu::Device, label: &str, bytes: &[u8]) -> wgpu::Buffer {
     device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
         label: Some(label),
         contents,
-        usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
+        usage: STORAGE,
     })
 }
 
-fn as_bytes<T: Copy>(v: &[T]) -> &[u8] {
-    // SAFETY: only called with u32 / f32 slices (plain old data, no padding).
-    unsafe { std::slice::from_raw_parts(v.as_ptr() as *const u8, std::mem::size_of_val(v)) }
+/// Writes `data` into `buf` (grown as needed) and returns it.
+fn upload<'a, T: bytemuck::Pod>(
+    device: &wgpu::Device,
+    queue: &wgpu::Queue,
+    buf: &'a mut GrowBuffer,
+    label: &'static str,
+    usage: wgpu::BufferUsages,
+    data: &[T],
+) -> &'a wgpu::Buffer {
+    let bytes: &[u8] = bytemuck::cast_slice(data);
+    let b = buf.ensure(device, label, usage, bytes.len() as u64);
+    if !bytes.is_empty() {
+        queue.write_buffer(b, 0, bytes);
+    }
+    b
 }
 
 impl GpuCompliance {
-    /// A builder on Bevy's render device and queue.
-    pub fn new(device: RenderDevice, queue: RenderQueue, mode: GpuMode) -> Self {
+    /// A builder on Bevy's render device and queue for bodies with at least
+    /// `min_rows` constraint rows.
+    pub fn new(device: RenderDevice, queue: RenderQueue, min_rows: usize) -> Self {
         Self {
             device,
             queue,
             pipelines: None,
             factors: HashMap::new(),
-            mode,
+            step: StepBuffers::default(),
+            min_rows,
             dispatches: 0,
             uploads: 0,
             built: 0,
@@ -180,12 +258,9 @@ impl GpuCompliance {
             .ok_or(SoftTissueError::Gpu("no pipelines".into()))
     }
 
-    fn upload(&mut self, body_id: u64, f: &LdltFactor, version: u64) {
-        if self
-            .factors
-            .get(&body_id)
-            .is_some_and(|u| u.version == version)
-        {
+    /// Uploads the factor in `f32` (once per factor key).
+    fn upload_factor(&mut self, body_id: u64, f: &LdltFactor, key: FactorKey) {
+        if self.factors.get(&body_id).is_some_and(|u| u.key == key) {
             return;
         }
         let s = &*f.symbolic;
@@ -202,13 +277,13 @@ impl GpuCompliance {
                 .flat_map(|d| [1.0 / d.x, 1.0 / d.y, 1.0 / d.z].map(|x| x as f32))
                 .collect();
         let up = UploadedFactor {
-            version,
+            key,
             n: s.n as u32,
-            col_ptr: storage(device, "col_ptr", as_bytes(&col_ptr)),
-            row_idx: storage(device, "row_idx", as_bytes(&row_idx)),
-            lvals: storage(device, "lvals", as_bytes(&lvals)),
-            ldiag: storage(device, "ldiag", as_bytes(&ldiag)),
-            dinv: storage(device, "dinv", as_bytes(&dinv)),
+            col_ptr: storage(device, "col_ptr", bytemuck::cast_slice(&col_ptr)),
+            row_idx: storage(device, "row_idx", bytemuck::cast_slice(&row_idx)),
+            lvals: storage(device, "lvals", bytemuck::cast_slice(&lvals)),
+            ldiag: storage(device, "ldiag", bytemuck::cast_slice(&ldiag)),
+            dinv: storage(device, "dinv", bytemuck::cast_slice(&dinv)),
         };
         self.factors.insert(body_id, up);
         self.uploads += 1;
@@ -220,63 +295,73 @@ impl GpuCompliance {
     }
 
     /// Computes this body's `W` block on the GPU; returns `(rows, w)` with
-    /// `w` row-major over the listed global rows.
+    /// `w` row-major over the listed global rows (both borrowed from the
+    /// builder's persistent buffers, valid until the next call).
     pub fn compute(
         &mut self,
         body_id: u64,
         factor: &LdltFactor,
-        version: u64,
+        key: FactorKey,
         h: f64,
         entries: &[JacEntry],
-    ) -> Result<(Vec<usize>, Vec<f32>)> {
+    ) -> Result<(&[usize], &[f32])> {
         self.pipelines()?;
-        self.upload(body_id, factor, version);
+        self.upload_factor(body_id, factor, key);
         let s = &*factor.symbolic;
+        let st = &mut self.step;
         // Contact nodes (entries are sorted by node) and their paths.
-        let mut nodes: Vec<u32> = entries.iter().map(|e| e.node).collect();
-        nodes.dedup();
-        let k = nodes.len();
-        let mut path_lists = Vec::with_capacity(k);
+        st.nodes.clear();
+        st.nodes.extend(entries.iter().map(|e| e.node));
+        st.nodes.dedup();
+        let k = st.nodes.len();
+        st.path.clear();
+        st.path_offsets.clear();
         let mut longest = 0;
-        for &node in &nodes {
-            let mut p = Vec::new();
+        for &node in &st.nodes {
+            let start = st.path.len();
+            st.path_offsets.push(start);
             let mut j = s.iperm[node as usize];
             while j != NONE {
-                p.push(j as u32);
+                st.path.push(j as u32);
                 j = s.parent[j];
             }
-            longest = longest.max(p.len());
-            path_lists.push(p);
+            longest = longest.max(st.path.len() - start);
         }
+        st.path_offsets.push(st.path.len());
         let stride = longest + 1;
-        let mut paths = vec![0u32; k * stride];
-        for (c, p) in path_lists.iter().enumerate() {
-            paths[c * stride] = p.len() as u32;
-            paths[c * stride + 1..c * stride + 1 + p.len()].copy_from_slice(p);
+        st.paths.clear();
+        st.paths.resize(k * stride, 0);
+        for c in 0..k {
+            let p = &st.path[st.path_offsets[c]..st.path_offsets[c + 1]];
+            st.paths[c * stride] = p.len() as u32;
+            st.paths[c * stride + 1..c * stride + 1 + p.len()].copy_from_slice(p);
         }
         // Local rows and their entries (contact-node index + j).
-        let mut rows: Vec<usize> = entries.iter().map(|e| e.row as usize).collect();
-        rows.sort_unstable();
-        rows.dedup();
-        let m = rows.len();
-        let mut by_row: Vec<(usize, u32, [f32; 3])> = entries
-            .iter()
-            .map(|e| {
-                let local_row = rows.binary_search(&(e.row as usize)).unwrap_or(0);
-                let c = nodes.binary_search(&e.node).unwrap_or(0) as u32;
-                (local_row, c, [e.j.x as f32, e.j.y as f32, e.j.z as f32])
-            })
-            .collect();
-        by_row.sort_by_key(|e| e.0);
-        let mut row_ptr = vec![0u32; m + 1];
-        for e in &by_row {
-            row_ptr[e.0 + 1] += 1;
+        st.rows.clear();
+        st.rows.extend(entries.iter().map(|e| e.row as usize));
+        st.rows.sort_unstable();
+        st.rows.dedup();
+        let m = st.rows.len();
+        st.by_row.clear();
+        for e in entries {
+            let local_row = st.rows.binary_search(&(e.row as usize)).unwrap_or(0);
+            let c = st.nodes.binary_search(&e.node).unwrap_or(0) as u32;
+            st.by_row
+                .push((local_row, c, [e.j.x as f32, e.j.y as f32, e.j.z as f32]));
+        }
+        st.by_row.sort_by_key(|e| e.0);
+        st.row_ptr.clear();
+        st.row_ptr.resize(m + 1, 0);
+        for e in &st.by_row {
+            st.row_ptr[e.0 + 1] += 1;
         }
         for r in 0..m {
-            row_ptr[r + 1] += row_ptr[r];
+            st.row_ptr[r + 1] += st.row_ptr[r];
         }
-        let ent_node: Vec<u32> = by_row.iter().map(|e| e.1).collect();
-        let ent_j: Vec<f32> = by_row.iter().flat_map(|e| e.2).collect();
+        st.ent_node.clear();
+        st.ent_node.extend(st.by_row.iter().map(|e| e.1));
+        st.ent_j.clear();
+        st.ent_j.extend(st.by_row.iter().flat_map(|e| e.2));
 
         let up = self
             .factors
@@ -284,6 +369,7 @@ impl GpuCompliance {
             .ok_or(SoftTissueError::Gpu("factor not uploaded".into()))?;
         let n = up.n;
         let device = self.device.wgpu_device();
+        let queue: &wgpu::Queue = &self.queue;
         let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
         let mut params = [0u32; 8];
         params[0] = n;
@@ -291,83 +377,105 @@ impl GpuCompliance {
         params[2] = stride as u32;
         params[3] = m as u32;
         params[4] = ((h * h) as f32).to_bits();
-        let params = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-            label: Some("params"),
-            contents: as_bytes(&params),
-            usage: wgpu::BufferUsages::UNIFORM,
-        });
-        let paths_buf = storage(device, "paths", as_bytes(&paths));
-        let zeros = |label: &str, floats: usize| {
-            device.create_buffer(&wgpu::BufferDescriptor {
-                label: Some(label),
-                size: (floats.max(1) * 4) as u64,
-                usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
-                mapped_at_creation: false,
-            })
-        };
-        let z = zeros("z", k * stride * 9);
-        let work = zeros("work", k * n as usize * 9);
-        let gram = zeros("gram", k * k * 9);
-        let w = zeros("w", m * m);
-        let row_ptr_buf = storage(device, "row_ptr", as_bytes(&row_ptr));
-        let ent_node_buf = storage(device, "ent_node", as_bytes(&ent_node));
-        let ent_j_buf = storage(device, "ent_j", as_bytes(&ent_j));
-        let readback = device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some("w_readback"),
-            size: (m.max(1) * m.max(1) * 4) as u64,
-            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
-            mapped_at_creation: false,
-        });
+        let uniform = wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST;
+        let params = upload(device, queue, &mut st.params, "params", uniform, &params);
+        let paths_buf = upload(
+            device,
+            queue,
+            &mut st.paths_buf,
+            "paths",
+            STORAGE,
+            &st.paths,
+        );
+        let z =
+            st.z.ensure(device, "z", STORAGE, (k * stride * 9 * 4) as u64);
+        let work = st
+            .work
+            .ensure(device, "work", STORAGE, (k * n as usize * 9 * 4) as u64);
+        let gram = st
+            .gram
+            .ensure(device, "gram", STORAGE, (k * k * 9 * 4) as u64);
+        let w_bytes = (m * m * 4) as u64;
+        let w = st.w.ensure(device, "w", STORAGE, w_bytes);
+        let row_ptr_buf = upload(
+            device,
+            queue,
+            &mut st.row_ptr_buf,
+            "row_ptr",
+            STORAGE,
+            &st.row_ptr,
+        );
+        let ent_node_buf = upload(
+            device,
+            queue,
+            &mut st.ent_node_buf,
+            "ent_node",
+            STORAGE,
+            &st.ent_node,
+        );
+        let ent_j_buf = upload(
+            device,
+            queue,
+            &mut st.ent_j_buf,
+            "ent_j",
+            STORAGE,
+            &st.ent_j,
+        );
+        let readback = st.readback.ensure(
+            device,
+            "w_readback",
+            wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+            w_bytes,
+        );
         let pl = self
             .pipelines
             .as_ref()
             .ok_or(SoftTissueError::Gpu("no pipelines".into()))?;
-        let bind = |pipeline: &wgpu::ComputePipeline, entries: &[(u32, &wgpu::Buffer)]| {
-            let e: Vec<wgpu::BindGroupEntry> = entries
-                .iter()
-                .map(|(b, buf)| wgpu::BindGroupEntry {
-                    binding: *b,
-                    resource: buf.as_entire_binding(),
-                })
-                .collect();
+        let bind = |pipeline: &wgpu::ComputePipeline, entries: &[wgpu::BindGroupEntry]| {
             device.create_bind_group(&wgpu::BindGroupDescriptor {
                 label: None,
                 layout: &pipeline.get_bind_group_layout(0),
-                entries: &e,
+                entries,
             })
         };
+        fn e(binding: u32, buf: &wgpu::Buffer) -> wgpu::BindGroupEntry<'_> {
+            wgpu::BindGroupEntry {
+                binding,
+                resource: buf.as_entire_binding(),
+            }
+        }
         let bg_forward = bind(
             &pl.forward,
             &[
-                (0, &params),
-                (1, &up.col_ptr),
-                (2, &up.row_idx),
-                (3, &up.lvals),
-                (4, &up.ldiag),
-                (5, &paths_buf),
-                (6, &z),
-                (7, &work),
+                e(0, params),
+                e(1, &up.col_ptr),
+                e(2, &up.row_idx),
+                e(3, &up.lvals),
+                e(4, &up.ldiag),
+                e(5, paths_buf),
+                e(6, z),
+                e(7, work),
             ],
         );
         let bg_gram = bind(
             &pl.gram,
             &[
-                (0, &params),
-                (5, &paths_buf),
-                (6, &z),
-                (8, &up.dinv),
-                (9, &gram),
+                e(0, params),
+                e(5, paths_buf),
+                e(6, z),
+                e(8, &up.dinv),
+                e(9, gram),
             ],
         );
         let bg_contract = bind(
             &pl.contract,
             &[
-                (0, &params),
-                (9, &gram),
-                (10, &row_ptr_buf),
-                (11, &ent_node_buf),
-                (12, &ent_j_buf),
-                (13, &w),
+                e(0, params),
+                e(9, gram),
+                e(10, row_ptr_buf),
+                e(11, ent_node_buf),
+                e(12, ent_j_buf),
+                e(13, w),
             ],
         );
         let mut enc = device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
@@ -392,10 +500,11 @@ impl GpuCompliance {
                 pass.dispatch_workgroups(((m * m) as u32).div_ceil(64), 1, 1);
             }
         }
-        enc.copy_buffer_to_buffer(&w, 0, &readback, 0, (m.max(1) * m.max(1) * 4) as u64);
+        let copy = w_bytes.max(4);
+        enc.copy_buffer_to_buffer(w, 0, readback, 0, copy);
         self.queue.submit([enc.finish()]);
         self.dispatches += 3;
-        let slice = readback.slice(..);
+        let slice = readback.slice(..copy);
         let (tx, rx) = crossbeam::channel::bounded(1);
         slice.map_async(wgpu::MapMode::Read, move |r| {
             let _ = tx.send(r);
@@ -407,15 +516,14 @@ impl GpuCompliance {
             return Err(gpu_err(format!("compliance dispatch: {e}")));
         }
         rx.recv().map_err(gpu_err)?.map_err(gpu_err)?;
-        let out: Vec<f32> = {
+        st.out.clear();
+        {
             let data = slice.get_mapped_range();
-            data.chunks_exact(4)
-                .take(m * m)
-                .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
-                .collect()
-        };
+            st.out
+                .extend_from_slice(&bytemuck::cast_slice::<u8, f32>(&data)[..m * m]);
+        }
         readback.unmap();
-        Ok((rows, out))
+        Ok((&st.rows, &st.out))
     }
 }
 
@@ -424,26 +532,34 @@ impl ComplianceBackend for GpuCompliance {
         &mut self,
         body_id: u64,
         factor: &LdltFactor,
-        factor_version: u64,
+        key: FactorKey,
         h: f64,
         entries: &[JacEntry],
         w: &mut [f64],
         m: usize,
     ) -> Result<bool> {
-        let contacts = entries
+        // Entries are sorted by node, not by row: count the distinct rows
+        // with a bitmap-free pass over the (small) row range.
+        let (lo, hi) = entries
             .iter()
-            .map(|e| e.row)
-            .collect::<std::collections::BTreeSet<_>>()
-            .len();
-        let on = match self.mode {
-            GpuMode::Off => false,
-            GpuMode::On => true,
-            GpuMode::Auto { min_rows } => contacts >= min_rows,
+            .fold((u32::MAX, 0), |(lo, hi), e| (lo.min(e.row), hi.max(e.row)));
+        let rows = if entries.is_empty() {
+            0
+        } else {
+            let mut seen = std::mem::take(&mut self.step.row_ptr);
+            seen.clear();
+            seen.resize((hi - lo + 1) as usize, 0);
+            for e in entries {
+                seen[(e.row - lo) as usize] = 1;
+            }
+            let count = seen.iter().filter(|&&s| s != 0).count();
+            self.step.row_ptr = seen;
+            count
         };
-        if !on {
+        if rows < self.min_rows {
             return Ok(false);
         }
-        let (rows, block) = self.compute(body_id, factor, factor_version, h, entries)?;
+        let (rows, block) = self.compute(body_id, factor, key, h, entries)?;
         let k = rows.len();
         for (a, &ra) in rows.iter().enumerate() {
             for (b, &rb) in rows.iter().enumerate() {

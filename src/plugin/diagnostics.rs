@@ -6,7 +6,7 @@ use bevy::ecs::intern::Interned;
 use bevy::ecs::schedule::ScheduleLabel;
 use bevy::prelude::*;
 
-use super::SoftTissueSystems;
+use super::sets::SoftTissueSystems;
 
 /// Numbers of the last step (times in ms) and counters of work done since start.
 ///
@@ -156,12 +156,7 @@ impl Plugin for SoftTissueDiagnosticsPlugin {
         for p in paths::ALL {
             app.register_diagnostic(Diagnostic::new(p).with_max_history_length(240));
         }
-        app.add_systems(
-            self.schedule,
-            publish
-                .in_set(SoftTissueSystems::Sync)
-                .after(super::sync_components),
-        );
+        app.add_systems(self.schedule, publish.after(SoftTissueSystems::Sync));
     }
 }
 

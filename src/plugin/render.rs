@@ -11,7 +11,8 @@ use bevy::ecs::schedule::ScheduleLabel;
 use bevy::mesh::{Indices, PrimitiveTopology, VertexAttributeValues};
 use bevy::prelude::*;
 
-use super::{SoftBody, SoftTissueSystems, Tool};
+use super::components::{SoftBody, Tool};
+use super::sets::SoftTissueSystems;
 use crate::contact::ToolShape;
 
 /// How a body's render mesh is coloured.

@@ -13,6 +13,75 @@
 use super::ldlt::LdltFactor;
 use crate::math::Mat3;
 
+/// Which factor a set of node columns (or a compliance build) belongs to.
+///
+/// Versions count separately per source, so a key names its source too:
+/// columns of the compliance's own factorization number 3 are never taken for
+/// the preconditioner's factor number 3.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum FactorKey {
+    /// The preconditioner's factor in use, by its version
+    /// ([`super::FactorState::version`]).
+    Preconditioner(u64),
+    /// A copy of the preconditioner's factor that the contact compliance keeps
+    /// using for a few steps (`ContactSettings::factor_reuse`), by the version
+    /// it was copied from.
+    Snapshot(u64),
+    /// The contact compliance's own factorization of the current matrix
+    /// (`ComplianceMode::Exact`, or a body without a factor), by its count.
+    Own(u64),
+}
+
+/// The hand-over of node columns between a body's contact compliance (on the
+/// stepping thread) and its background factorizer: the nodes last in
+/// contact (the hint), the columns of the newest factor, and memory to reuse.
+///
+/// The body owns it ([`crate::body::DeformableBody::column_prefetch_mut`]).
+/// The contact compliance takes it out of the body for its build and puts it
+/// back; the preconditioner reads the hint and fills the columns when it swaps
+/// a factor in. No lock: both sides run on the stepping thread, and the
+/// worker only sees the caches it is handed with a job.
+#[derive(Debug, Default)]
+pub struct ColumnPrefetch {
+    /// Nodes whose columns the next background factorization precomputes.
+    pub(crate) hint: Vec<u32>,
+    /// Columns of a factor swapped in (keyed), not yet taken.
+    pub(crate) ready: Option<ColumnCache>,
+    /// A cache whose memory the next precomputation reuses.
+    pub(crate) spare: Option<ColumnCache>,
+}
+
+impl ColumnPrefetch {
+    /// Keeps `c` for its memory, unless a spare is already kept.
+    pub(crate) fn keep_spare(&mut self, c: ColumnCache) {
+        if self.spare.is_none() {
+            self.spare = Some(c);
+        }
+    }
+
+    /// The columns of factor `key`, when the background worker precomputed
+    /// them (taken once).
+    pub(crate) fn take(&mut self, key: FactorKey) -> Option<ColumnCache> {
+        if self.ready.as_ref().is_some_and(|c| c.key == Some(key)) {
+            self.ready.take()
+        } else {
+            None
+        }
+    }
+
+    /// Sets the nodes whose columns the next background factorization
+    /// precomputes (only `Async` preconditioners have a worker to read it).
+    pub(crate) fn set_hint(&mut self, nodes: impl Iterator<Item = u32>) {
+        self.hint.clear();
+        self.hint.extend(nodes);
+    }
+
+    /// The nodes of the current hint.
+    pub fn hint(&self) -> &[u32] {
+        &self.hint
+    }
+}
+
 #[derive(Debug, Clone, Copy)]
 pub(crate) struct Column {
     pub(crate) start: usize,
@@ -118,10 +187,11 @@ fn gram3_portable(z: [&[f64]; 3], s: [&[f64]; 3]) -> Mat3 {
     g
 }
 
-/// Cached node columns `Z_k` and Gram blocks of one factor version.
+/// Cached node columns `Z_k` and Gram blocks of one factor.
 #[derive(Debug, Default)]
-pub(crate) struct ColumnCache {
-    pub(crate) version: u64,
+pub struct ColumnCache {
+    /// The factor these columns belong to (`None`: none yet, or forgotten).
+    pub(crate) key: Option<FactorKey>,
     pub(crate) col_of_node: Vec<u32>,
     pub(crate) cols: Vec<Column>,
     pub(crate) paths: Vec<usize>,
@@ -140,7 +210,7 @@ pub(crate) struct ColumnCache {
 }
 
 impl ColumnCache {
-    pub(crate) fn reset(&mut self, n: usize, version: u64) {
+    pub(crate) fn reset(&mut self, n: usize, key: FactorKey) {
         if self.col_of_node.len() != n {
             self.col_of_node = vec![u32::MAX; n];
             self.work = vec![Mat3::zeros(); n];
@@ -153,7 +223,7 @@ impl ColumnCache {
         self.soa_z.clear();
         self.soa_s.clear();
         self.pairs.clear();
-        self.version = version;
+        self.key = Some(key);
     }
 
     pub(crate) fn column(&mut self, f: &LdltFactor, node: usize) -> u32 {
@@ -185,9 +255,9 @@ impl ColumnCache {
 
     /// Solves the columns of `nodes` (original numbering, any order, repeats
     /// allowed) and every Gram block among them with factor `f`, as the cache
-    /// of factor version `version`.
-    pub(crate) fn precompute(&mut self, f: &LdltFactor, version: u64, nodes: &[u32]) {
-        self.reset(f.symbolic.n, version);
+    /// of factor `key`.
+    pub(crate) fn precompute(&mut self, f: &LdltFactor, key: FactorKey, nodes: &[u32]) {
+        self.reset(f.symbolic.n, key);
         for &k in nodes {
             if (k as usize) < f.symbolic.n {
                 self.column(f, k as usize);

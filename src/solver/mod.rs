@@ -68,11 +68,12 @@
 //! leave no hint, and their worker factorizes only.
 
 pub mod cg;
-pub(crate) mod columns;
+pub mod columns;
 pub mod ldlt;
 
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
+
 use std::thread::JoinHandle;
 use std::time::Instant;
 
@@ -81,7 +82,7 @@ use crossbeam::channel::{Receiver, Sender, TryRecvError, bounded};
 use crate::error::{Result, SoftTissueError};
 use crate::fem::assembly::BlockCsr;
 use crate::math::{Mat3, Vec3};
-use columns::ColumnCache;
+use columns::{ColumnCache, ColumnPrefetch, FactorKey};
 use ldlt::{LdltFactor, LdltSymbolic};
 
 /// Applies `z = P⁻¹ r`.
@@ -176,28 +177,6 @@ struct Done {
     columns: Option<ColumnCache>,
 }
 
-/// Node columns passed between the contact compliance (on the stepping
-/// thread) and the background worker: the nodes last in contact, the columns
-/// of the newest factor, and memory to reuse.
-#[derive(Debug, Default)]
-struct ColumnExchange {
-    /// Nodes whose columns the next background factorization precomputes.
-    hint: Vec<u32>,
-    /// Columns of a factor swapped in (stamped with its version), not yet taken.
-    ready: Option<ColumnCache>,
-    /// A cache whose memory the next precomputation reuses.
-    spare: Option<ColumnCache>,
-}
-
-impl ColumnExchange {
-    /// Keeps `c` for its memory, unless a spare is already kept.
-    fn keep_spare(&mut self, c: ColumnCache) {
-        if self.spare.is_none() {
-            self.spare = Some(c);
-        }
-    }
-}
-
 /// Locks `m`; a panic elsewhere while it was held leaves the data usable.
 fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
     m.lock().unwrap_or_else(|e| e.into_inner())
@@ -269,7 +248,7 @@ impl AsyncFactorizer {
                     // rather than on the stepping thread.
                     // (A job carries a cache only when it has a hint.)
                     if let (Ok(()), Some(c)) = (&result, job.columns.as_mut()) {
-                        c.precompute(&job.factor, 0, &job.hint);
+                        c.precompute(&job.factor, FactorKey::Preconditioner(0), &job.hint);
                     }
                     IN_FLIGHT.fetch_sub(1, Ordering::SeqCst);
                     let done = Done {
@@ -343,7 +322,7 @@ impl AsyncFactorizer {
         a: &BlockCsr,
         rotations: &[Mat3],
         step: u64,
-        exchange: &Mutex<ColumnExchange>,
+        prefetch: &mut ColumnPrefetch,
     ) {
         if self.in_flight {
             return;
@@ -376,15 +355,12 @@ impl AsyncFactorizer {
         values.copy_from_slice(&a.values);
         rots.copy_from_slice(rotations);
         let mut hint = std::mem::take(&mut self.hint);
-        let columns = {
-            let mut ex = lock(exchange);
-            hint.clear();
-            hint.extend_from_slice(&ex.hint);
-            if hint.is_empty() {
-                None
-            } else {
-                Some(ex.spare.take().unwrap_or_default())
-            }
+        hint.clear();
+        hint.extend_from_slice(&prefetch.hint);
+        let columns = if hint.is_empty() {
+            None
+        } else {
+            Some(prefetch.spare.take().unwrap_or_default())
         };
         let job = Job {
             values,
@@ -451,7 +427,7 @@ pub struct PreconditionerState {
     tmp: Vec<Vec3>,
     tmp2: Vec<Vec3>,
     alt: Vec<Vec3>,
-    columns: Mutex<ColumnExchange>,
+    prefetch: ColumnPrefetch,
     /// Factor version the warp was last tried on, and whether it was kept.
     warp_choice: Option<(u64, bool)>,
     stats: PreconditionerStats,
@@ -487,35 +463,16 @@ impl PreconditionerState {
             tmp: vec![Vec3::zeros(); n],
             tmp2: vec![Vec3::zeros(); n],
             alt: vec![Vec3::zeros(); n],
-            columns: Mutex::default(),
+            prefetch: ColumnPrefetch::default(),
             warp_choice: None,
             stats: PreconditionerStats::default(),
         })
     }
 
-    /// The node columns of factor version `version`, when the background
-    /// worker precomputed them (the compliance takes them once).
-    pub(crate) fn take_columns(&self, version: u64) -> Option<ColumnCache> {
-        let mut ex = lock(&self.columns);
-        if ex.ready.as_ref().is_some_and(|c| c.version == version) {
-            ex.ready.take()
-        } else {
-            None
-        }
-    }
-
-    /// Hands a cache back for its memory to be reused.
-    pub(crate) fn give_back_columns(&self, c: ColumnCache) {
-        lock(&self.columns).keep_spare(c);
-    }
-
-    /// The nodes whose columns the next background factorization precomputes
-    /// (the compliance sets the nodes of its latest build). Only `Async` has a
-    /// worker; for the other kinds this is kept and unused.
-    pub(crate) fn set_column_hint(&self, nodes: impl Iterator<Item = u32>) {
-        let mut ex = lock(&self.columns);
-        ex.hint.clear();
-        ex.hint.extend(nodes);
+    /// The node-column hand-over with the contact compliance (see
+    /// [`ColumnPrefetch`]).
+    pub fn column_prefetch_mut(&mut self) -> &mut ColumnPrefetch {
+        &mut self.prefetch
     }
 
     /// The kind.
@@ -638,10 +595,9 @@ impl PreconditionerState {
                                 st.step = done.step;
                                 st.version += 1;
                                 if let Some(mut c) = columns.take() {
-                                    c.version = st.version;
+                                    c.key = Some(FactorKey::Preconditioner(st.version));
                                     self.stats.precomputed_columns += c.cols.len() as u64;
-                                    let mut ex = lock(&self.columns);
-                                    columns = ex.ready.replace(c);
+                                    columns = self.prefetch.ready.replace(c);
                                 }
                             }
                             self.stats.refreshes += 1;
@@ -649,13 +605,13 @@ impl PreconditionerState {
                         Err(_) => self.stats.failures += 1,
                     }
                     if let Some(c) = columns {
-                        lock(&self.columns).keep_spare(c);
+                        self.prefetch.keep_spare(c);
                     }
                     w.spare = Some((done.values, done.rotations, done.factor));
                     w.hint = done.hint;
                 }
                 if let Some(w) = &mut self.worker {
-                    w.submit(a, rotations, step, &self.columns);
+                    w.submit(a, rotations, step, &mut self.prefetch);
                 }
             }
         }

@@ -1,22 +1,5 @@
-//! Collision detection: surface vertices against tools and against other bodies.
-//!
-//! - **RigidTool – body**: every surface vertex inside the tool's bounds (grown
-//!   by the alarm distance) is projected into the tool frame (parry3d-f64);
-//!   a signed distance below the alarm distance makes a contact with the
-//!   tool's outward normal.
-//! - **Body – body**: the surface vertices of one body against the surface
-//!   triangles of the other, in both directions. Each body keeps a bounding
-//!   volume hierarchy of its surface triangles and one of its tetrahedra, both
-//!   built once and refitted every pass. The closest triangle gives barycentric
-//!   weights. Whether a vertex is *inside* the other body is decided by the
-//!   tetrahedra (a point-in-tet query), never by the side of a triangle's plane
-//!   alone: near a cut (an incision's wall) an outside vertex can lie behind the
-//!   closest triangle's plane, and a vertex that went deeper than the alarm
-//!   distance in one step has no triangle near it at all. An outside vertex
-//!   within the alarm distance gets the triangle's outward normal; an inside
-//!   vertex is pushed toward the closest surface point, however deep it is.
-//!
-//! Self-collision is out of scope.
+//! Geometry for detection: bounding volume hierarchies and the point,
+//! segment and triangle primitives.
 
 use crate::math::Vec3;
 

@@ -1,13 +1,13 @@
-//! Fixtures shared by the benchmarks, the examples and the tests: the
-//! paper-size lens and synthetic contacts on it. No Bevy types.
+//! Bench fixtures shared by the benchmarks, the examples and the tests (not
+//! library API): the paper-size lens and synthetic contacts on it. No Bevy types.
 
-use crate::body::{BodySettings, DeformableBody};
-use crate::contact::{Contact, ContactOther, ContactSide, tangent_basis};
-use crate::error::Result;
-use crate::material::{StiffnessField, TissueMaterial, Transition};
-use crate::math::{Vec3, v3};
-use crate::mesh::generate::{self, LENS_RADII};
-use crate::solver::PreconditionerKind;
+use bevy_soft_tissue::body::{BodySettings, DeformableBody};
+use bevy_soft_tissue::contact::{Contact, ContactOther, ContactSide, tangent_basis};
+use bevy_soft_tissue::error::Result;
+use bevy_soft_tissue::material::{StiffnessField, TissueMaterial, Transition};
+use bevy_soft_tissue::math::{Vec3, v3};
+use bevy_soft_tissue::mesh::generate::{self, LENS_RADII};
+use bevy_soft_tissue::solver::PreconditionerKind;
 
 /// The lens material of the benchmarks: 5 kPa periphery, nucleus 5× stiffer
 /// (smooth transition), ν = 0.45.

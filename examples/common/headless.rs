@@ -1,0 +1,235 @@
+//! The cataract scene run without a window and measured: the harness of
+//! `examples/cataract.rs --headless` and of the scene test (not library API).
+
+use std::time::Duration;
+
+use bevy::prelude::*;
+use bevy_soft_tissue::SoftTissuePlugins;
+use bevy_soft_tissue::body::BodySettings;
+use bevy_soft_tissue::contact::{ContactSolver, PassKind};
+use bevy_soft_tissue::error::{Result, SoftTissueError};
+use bevy_soft_tissue::plugin::{SoftBody, SoftTissueConfig, SoftTissueDiagnostics, Tool};
+use bevy_soft_tissue::scenes::cataract::{self, CataractParams};
+use bevy_soft_tissue::scenes::{CataractScenePlugin, Lens};
+
+/// Summary of a headless run.
+#[derive(Debug, Clone, Default)]
+pub struct HeadlessSummary {
+    /// Steps run.
+    pub steps: usize,
+    /// Median milliseconds per phase: assemble, factorize, free motion, detect,
+    /// compliance, LCP, correct, whole step.
+    pub median_ms: [f64; 8],
+    /// Steps per second from the median step time.
+    pub steps_per_second: f64,
+    /// Median and maximum contacts per step.
+    pub contacts: (usize, usize),
+    /// Mean CG iterations per step (both bodies).
+    pub cg_iterations: f64,
+    /// Largest penetration seen at the end of a step, metres: surface vertices
+    /// against the vectis and against the other body's surface (lens–sclera),
+    /// found by a detection pass over the final positions of every step.
+    pub max_penetration: f64,
+    /// The part of [`Self::max_penetration`] between the two bodies (lens–sclera), metres.
+    pub max_tissue_penetration: f64,
+    /// Penetration tolerance used (1 % of the smallest lens edge), metres.
+    pub tolerance: f64,
+    /// Lens centre at the start and at the end.
+    pub lens_center: (bevy_soft_tissue::math::Vec3, bevy_soft_tissue::math::Vec3),
+    /// Largest speed of the lens's centre of mass (mean node velocity) seen, m/s:
+    /// a stability check, as the vectis itself moves at about 1 mm/s.
+    pub max_lens_speed: f64,
+    /// Median step time over the steps with 50–90 contacts, if any.
+    pub median_ms_50_90: Option<f64>,
+    /// Mean milliseconds per phase (same order as [`Self::median_ms`]) over the
+    /// steps with 50–90 contacts: where the time of those steps goes.
+    pub mean_ms_50_90: [f64; 8],
+    /// Mean CG iterations per step (both bodies) over the steps with 50–90 contacts.
+    pub cg_iterations_50_90: f64,
+    /// Mean LCP sweeps and contact passes per step over the steps with 50–90 contacts.
+    pub lcp_50_90: (f64, f64),
+    /// Steps with more than 90 contacts (the lens jammed in the slit), and their
+    /// median step time in ms, if any.
+    pub jam: (usize, Option<f64>),
+    /// The most contact passes a step ran, and how many steps ran more than
+    /// eight (see [`bevy_soft_tissue::contact::ContactSettings::max_passes`]).
+    pub max_passes: (usize, usize),
+}
+
+/// Runs the cataract scene without a window for `steps` fixed steps and
+/// measures it. Fails on NaN or on errors reported by the pipeline; the caller
+/// compares [`HeadlessSummary::max_penetration`] with its tolerance.
+pub fn run_headless(
+    params: &CataractParams,
+    config: SoftTissueConfig,
+    body: BodySettings,
+    steps: usize,
+) -> Result<HeadlessSummary> {
+    let h = config.timestep;
+    let mut app = App::new();
+    app.add_plugins((
+        MinimalPlugins,
+        SoftTissuePlugins::default().with_config(config),
+    ))
+    .add_plugins(CataractScenePlugin {
+        params: params.clone(),
+        body,
+    })
+    .insert_resource(bevy::time::TimeUpdateStrategy::ManualDuration(
+        Duration::from_secs_f64(h),
+    ));
+    app.update();
+    // Queries made once, read after every step.
+    let mut lens_q = app.world_mut().query_filtered::<&SoftBody, With<Lens>>();
+    let mut tool_q = app.world_mut().query::<&Tool>();
+    let mut body_q = app.world_mut().query::<&SoftBody>();
+    let centre = |b: &SoftBody| {
+        b.positions().iter().sum::<bevy_soft_tissue::math::Vec3>() / b.num_nodes() as f64
+    };
+    let start = lens_q
+        .iter(app.world())
+        .next()
+        .map(centre)
+        .ok_or(SoftTissueError::EmptyMesh("cataract scene did not spawn"))?;
+    let tolerance = lens_q
+        .iter(app.world())
+        .next()
+        .map(|b| 0.01 * b.mesh().min_edge_length())
+        .unwrap_or(0.0);
+    // A detection pass of its own over each step's final positions: what the
+    // pipeline left penetrating, tools and bodies alike.
+    let mut checker = ContactSolver::new(cataract::contact_settings())?;
+    let mut jam = Vec::new();
+    let mut max_tissue: f64 = 0.0;
+    let mut phases: [Vec<f64>; 8] = Default::default();
+    let mut contacts = Vec::new();
+    let mut band = Vec::new();
+    let mut band_sum = [0.0f64; 8];
+    let mut band_cg = 0usize;
+    let mut band_lcp = (0usize, 0usize);
+    let mut cg = 0usize;
+    let mut max_pen: f64 = 0.0;
+    let mut max_lens_speed: f64 = 0.0;
+    let mut max_passes = (0, 0);
+    let mut done = 0;
+    let mut last = app.world().resource::<SoftTissueDiagnostics>().steps;
+    let mut guard = 0;
+    while done < steps {
+        app.update();
+        guard += 1;
+        if guard > 4 * steps + 10 {
+            return Err(SoftTissueError::InvalidParameter {
+                name: "steps",
+                value: steps as f64,
+                reason: "fixed steps are not advancing",
+            });
+        }
+        let d = app.world().resource::<SoftTissueDiagnostics>().clone();
+        if d.steps == last {
+            continue;
+        }
+        last = d.steps;
+        done += 1;
+        if d.errors > 0 {
+            return Err(SoftTissueError::NonFinite(
+                "the pipeline reported an error (see the log)",
+            ));
+        }
+        let v = [
+            d.assemble_ms,
+            d.factorize_ms,
+            d.free_motion_ms,
+            d.detect_ms,
+            d.compliance_ms,
+            d.lcp_ms,
+            d.correct_ms,
+            d.step_ms(),
+        ];
+        for (p, x) in phases.iter_mut().zip(v) {
+            p.push(x);
+        }
+        contacts.push(d.contacts);
+        if d.contacts > 90 {
+            jam.push(d.step_ms());
+        }
+        if (50..=90).contains(&d.contacts) {
+            band.push(d.step_ms());
+            for (acc, x) in band_sum.iter_mut().zip(v) {
+                *acc += x;
+            }
+            band_cg += d.cg_iterations;
+            band_lcp.0 += d.lcp_iterations;
+            band_lcp.1 += d.contact_passes;
+        }
+        cg += d.cg_iterations;
+        max_passes.0 = max_passes.0.max(d.contact_passes);
+        max_passes.1 += usize::from(d.contact_passes > 8);
+        let world = app.world();
+        if let Some(b) = lens_q.iter(world).next() {
+            let v = b.velocities();
+            let mean = v.iter().sum::<bevy_soft_tissue::math::Vec3>() / v.len().max(1) as f64;
+            max_lens_speed = max_lens_speed.max(mean.norm());
+        }
+        // Penetration left at the end of the step: into the vectis and between the bodies.
+        let tools: Vec<&bevy_soft_tissue::contact::RigidTool> =
+            tool_q.iter(world).map(|t| &t.0).collect();
+        let bodies: Vec<&bevy_soft_tissue::body::DeformableBody> =
+            body_q.iter(world).map(|b| &b.0).collect();
+        for b in &bodies {
+            if !b
+                .positions()
+                .iter()
+                .all(|p| p.iter().all(|c| c.is_finite()))
+            {
+                return Err(SoftTissueError::NonFinite("body positions"));
+            }
+        }
+        checker.detect(&bodies, &tools, h, PassKind::First)?;
+        for c in checker.contacts() {
+            max_pen = max_pen.max(-c.gap);
+            if matches!(c.other, bevy_soft_tissue::contact::ContactOther::Body(_)) {
+                max_tissue = max_tissue.max(-c.gap);
+            }
+        }
+    }
+    let end = lens_q.iter(app.world()).next().map(centre).unwrap_or(start);
+    let med = |v: &mut Vec<f64>| {
+        if v.is_empty() {
+            return f64::NAN;
+        }
+        v.sort_by(f64::total_cmp);
+        v[v.len() / 2]
+    };
+    let mut median_ms = [0.0; 8];
+    for (m, p) in median_ms.iter_mut().zip(phases.iter_mut()) {
+        *m = med(p);
+    }
+    let mut c = contacts;
+    c.sort_unstable();
+    let band_steps = band.len().max(1) as f64;
+    let summary = HeadlessSummary {
+        steps,
+        median_ms,
+        steps_per_second: 1e3 / median_ms[7],
+        contacts: (
+            c.get(c.len() / 2).copied().unwrap_or(0),
+            c.last().copied().unwrap_or(0),
+        ),
+        cg_iterations: cg as f64 / steps.max(1) as f64,
+        max_penetration: max_pen,
+        tolerance,
+        lens_center: (start, end),
+        max_lens_speed,
+        mean_ms_50_90: band_sum.map(|x| x / band_steps),
+        cg_iterations_50_90: band_cg as f64 / band_steps,
+        lcp_50_90: (
+            band_lcp.0 as f64 / band_steps,
+            band_lcp.1 as f64 / band_steps,
+        ),
+        median_ms_50_90: (!band.is_empty()).then(|| med(&mut band)),
+        max_tissue_penetration: max_tissue,
+        jam: (jam.len(), (!jam.is_empty()).then(|| med(&mut jam))),
+        max_passes,
+    };
+    Ok(summary)
+}

@@ -1,0 +1,7 @@
+//! Harness code shared by the examples, benchmarks and tests (included with
+//! `#[path]`; not library API).
+#![allow(dead_code)]
+
+pub mod bench;
+#[cfg(feature = "bevy")]
+pub mod headless;

@@ -1,0 +1,71 @@
+//! The compliance's shared types: the mode, the Jacobian entry, scratch.
+
+use crate::math::Vec3;
+
+/// How the contact compliance of a body is computed (see the module docs).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum ComplianceMode {
+    /// From the body's preconditioner factor, warped (reach-restricted forward solves).
+    #[default]
+    Factorized,
+    /// From a fresh factorization of the current matrix.
+    Exact,
+    /// Uncoupled: diagonal blocks of the current matrix only.
+    Diagonal,
+    /// Dense inverse of the matrix at rest, rotated (small meshes only).
+    RestPrecomputed,
+    /// The paper's CPU method: two full solves per Jacobian row (benchmark baseline).
+    DenseRows,
+}
+
+impl ComplianceMode {
+    /// Whether the body must compute node rotations every step for this mode
+    /// (`RestPrecomputed` rotates its rest inverse by them; the other modes
+    /// take their warp from the preconditioner, which computes them itself
+    /// when it needs them).
+    pub fn needs_node_rotations(self) -> bool {
+        match self {
+            ComplianceMode::RestPrecomputed => true,
+            ComplianceMode::Factorized
+            | ComplianceMode::Exact
+            | ComplianceMode::Diagonal
+            | ComplianceMode::DenseRows => false,
+        }
+    }
+}
+
+/// One nonzero 3-vector of the contact Jacobian.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct JacEntry {
+    /// Node of the body.
+    pub node: u32,
+    /// Constraint row.
+    pub row: u32,
+    /// `H` block (world frame): the row's direction times the node's weight and sign.
+    pub h: Vec3,
+    /// `Qᵀ h`, in the frame of the factor.
+    pub j: Vec3,
+}
+
+/// Reusable vectors.
+#[derive(Debug, Default)]
+pub(super) struct Scratch {
+    pub(super) a: Vec<Vec3>,
+    pub(super) b: Vec<Vec3>,
+    pub(super) c: Vec<Vec3>,
+    pub(super) groups: Vec<(usize, usize)>,
+    pub(super) by_row: Vec<u32>,
+    pub(super) cols: Vec<u32>,
+}
+
+/// Runs of entries with the same node: `(start, end)` per node.
+pub(super) fn group(entries: &[JacEntry], groups: &mut Vec<(usize, usize)>) {
+    groups.clear();
+    let mut s = 0;
+    for i in 1..=entries.len() {
+        if i == entries.len() || entries[i].node != entries[s].node {
+            groups.push((s, i));
+            s = i;
+        }
+    }
+}

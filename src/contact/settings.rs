@@ -1,0 +1,106 @@
+//! Scene-wide contact settings, the one home of every contact setting; a
+//! body's own compliance mode is set on the solver
+//! ([`super::ContactSolver::set_body_compliance`]).
+
+use super::compliance::ComplianceMode;
+use super::lcp::LcpSettings;
+use crate::error::{Result, SoftTissueError, check_positive};
+
+/// Scene-wide contact settings.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ContactSettings {
+    /// Compliance mode of every body that has none of its own
+    /// ([`super::ContactSolver::set_body_compliance`]).
+    pub compliance: ComplianceMode,
+    /// Proximity (alarm) distance below which a contact is created, metres.
+    pub alarm_distance: f64,
+    /// Friction coefficient between deformable bodies.
+    pub body_friction: f64,
+    /// Friction on or off for the whole scene (off: μ = 0 everywhere, no tangent rows).
+    pub friction: bool,
+    /// Gauss–Seidel settings.
+    pub lcp: LcpSettings,
+    /// Maximum contact passes per step. After the first correction, detection
+    /// runs again; while some vertex still penetrates deeper than
+    /// `penetration_tolerance` (a vertex the correction pushed into a tool, or the
+    /// curvature a linearized contact ignores), another frictionless pass corrects it.
+    pub max_passes: usize,
+    /// Penetration that triggers another pass, metres.
+    pub penetration_tolerance: f64,
+    /// Steps that `Factorized` compliance keeps using a factor after the
+    /// preconditioner swapped in a newer one (0, the default: always the
+    /// newest, the most accurate `W`). Node columns and Gram blocks are cached
+    /// per factor, so reusing one for a few steps makes more steps' `W` nearly
+    /// free. It trades accuracy for time: the rotation warp follows rotations
+    /// but not changes of shape, so `W` and the correction drift from the
+    /// current stiffness as the tissue deforms. Applies to bodies whose
+    /// preconditioner warps (`Periodic`, `Async`).
+    pub factor_reuse: u64,
+    /// Detect the first pass where the contacts will be, not at the free
+    /// motion: each body's free-motion positions plus its previous step's total
+    /// correction. Tissue held against a surface springs back in free motion
+    /// (in the cataract scene's slit by up to 0.5 mm a step, half the sclera's
+    /// thickness) and the correction pushes it out again; detected at the
+    /// free motion, such a vertex is deep inside the other body, where the
+    /// closest surface point may lie on its far side. At the predicted positions
+    /// held contacts sit near their surface, and the linearized gaps account
+    /// for the shift exactly (`δ₀ = gap − H·shift`), so the LCP solves the
+    /// same problem at a better-chosen linearization point. On by default.
+    pub predict: bool,
+}
+
+impl Default for ContactSettings {
+    fn default() -> Self {
+        Self {
+            compliance: ComplianceMode::Factorized,
+            alarm_distance: 1e-4,
+            body_friction: 0.0,
+            friction: true,
+            lcp: LcpSettings::default(),
+            max_passes: 3,
+            penetration_tolerance: 1e-6,
+            factor_reuse: 0,
+            predict: true,
+        }
+    }
+}
+
+impl ContactSettings {
+    /// Checks the parameters.
+    pub fn validate(&self) -> Result<()> {
+        check_positive("alarm_distance", self.alarm_distance)?;
+        crate::error::check_range("body_friction", self.body_friction, 0.0, 1e6)?;
+        check_positive("lcp.tolerance", self.lcp.tolerance)?;
+        let dt = self.lcp.displacement_tolerance;
+        if !(dt.is_finite() && dt >= 0.0) {
+            return Err(SoftTissueError::InvalidParameter {
+                name: "lcp.displacement_tolerance",
+                value: dt,
+                reason: "must be finite and non-negative",
+            });
+        }
+        if !(self.lcp.over_relaxation > 0.0 && self.lcp.over_relaxation < 2.0) {
+            return Err(SoftTissueError::InvalidParameter {
+                name: "lcp.over_relaxation",
+                value: self.lcp.over_relaxation,
+                reason: "must lie in (0, 2)",
+            });
+        }
+        check_positive("penetration_tolerance", self.penetration_tolerance)?;
+        if self.max_passes == 0 {
+            return Err(SoftTissueError::InvalidParameter {
+                name: "max_passes",
+                value: 0.0,
+                reason: "must be ≥ 1",
+            });
+        }
+        if self.lcp.max_iterations == 0 {
+            return Err(SoftTissueError::InvalidParameter {
+                name: "lcp.max_iterations",
+                value: 0.0,
+                reason: "must be ≥ 1",
+            });
+        }
+        Ok(())
+    }
+}

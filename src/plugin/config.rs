@@ -1,0 +1,86 @@
+//! The plugin's settings: [`SoftTissueConfig`], the one home of each
+//! scene-wide setting, and [`GpuMode`].
+
+use bevy::prelude::*;
+
+use crate::contact::ContactSettings;
+
+/// Where the contact compliance of `Factorized` bodies is built.
+///
+/// The GPU path needs the `gpu` feature and a render device (`RenderPlugin`);
+/// otherwise every mode builds on the CPU.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Reflect)]
+pub enum GpuMode {
+    /// Always on the CPU.
+    #[default]
+    Off,
+    /// On the GPU whenever there are contacts.
+    On,
+    /// On the GPU when a body has at least `min_rows` constraint rows
+    /// (contacts × 3 with friction, × 1 without).
+    Auto {
+        /// Crossover in rows.
+        min_rows: usize,
+    },
+}
+
+impl GpuMode {
+    /// The fewest rows a body needs for its `W` to be built on the GPU
+    /// (`None`: never).
+    pub fn min_rows(self) -> Option<usize> {
+        match self {
+            GpuMode::Off => None,
+            GpuMode::On => Some(0),
+            GpuMode::Auto { min_rows } => Some(min_rows),
+        }
+    }
+}
+
+/// Scene-wide settings (a resource; change it at runtime).
+///
+/// Each setting has one home. Scene-wide ones live here; a body's own
+/// (preconditioner, CG, rotation method) live in its
+/// [`crate::body::BodySettings`]. The per-body override components write into
+/// those homes: `PreconditionerOverride` into the body's settings,
+/// `ComplianceOverride` into the contact solver's per-body compliance
+/// ([`crate::contact::ContactSolver::set_body_compliance`]), whose default is
+/// [`ContactSettings::compliance`] here.
+#[derive(Resource, Reflect, Debug, Clone)]
+#[reflect(Resource)]
+pub struct SoftTissueConfig {
+    /// Step size `h`, seconds. The fixed timestep of `Time<Fixed>` is set to it.
+    pub timestep: f64,
+    /// Gravity, m/s² (`None`: no gravity), for every body.
+    pub gravity: Option<bevy::math::DVec3>,
+    /// Contact handling on or off.
+    pub contacts: bool,
+    /// Rayleigh damping on or off, for every body.
+    pub damping: bool,
+    /// Contact settings: detection, friction on or off, the default compliance
+    /// mode, the LCP, the passes.
+    #[reflect(ignore)]
+    pub contact: ContactSettings,
+    /// GPU compliance (feature `gpu`).
+    pub gpu: GpuMode,
+}
+
+impl Default for SoftTissueConfig {
+    fn default() -> Self {
+        Self {
+            timestep: 1.0 / 60.0,
+            gravity: None,
+            contacts: true,
+            damping: true,
+            contact: ContactSettings::default(),
+            gpu: GpuMode::Off,
+        }
+    }
+}
+
+impl SoftTissueConfig {
+    /// Whether [`Self::timestep`] is a usable step: finite, at least 1 µs
+    /// and at most 1 s.
+    pub fn timestep_ok(&self) -> bool {
+        self.timestep.is_finite() && (1e-6..=1.0).contains(&self.timestep)
+    }
+}

@@ -1,0 +1,320 @@
+//! [`ContactPlugin`]: detection, compliance, LCP, correction and refinement
+//! passes, each in its own set, calling the [`crate::contact::ContactSolver`]
+//! phases that [`crate::scene::Scene::step`] calls too.
+
+use bevy::ecs::intern::Interned;
+use bevy::ecs::schedule::ScheduleLabel;
+use bevy::prelude::*;
+
+use super::components::{ComplianceOverride, SoftBody, SoftTissueContacts, Tool};
+use super::config::SoftTissueConfig;
+use super::diagnostics::SoftTissueDiagnostics;
+use super::sets::SoftTissueSystems;
+use super::views::{BodyView, BodyViewMut, ToolView, ToolViewMut, all_present};
+use crate::contact::PassKind;
+use crate::math::Vec3 as DVec3;
+use crate::scene::phases;
+
+/// Detection, compliance, LCP, correction and refinement systems. Without it
+/// (`SoftTissuePlugins::build().disable::<ContactPlugin>()`) bodies move
+/// freely through tools and each other.
+pub struct ContactPlugin {
+    pub(super) schedule: Interned<dyn ScheduleLabel>,
+}
+
+impl Plugin for ContactPlugin {
+    fn build(&self, app: &mut App) {
+        app.add_systems(
+            self.schedule,
+            (
+                (tool_poses, apply_compliance_overrides, detect)
+                    .chain()
+                    .in_set(SoftTissueSystems::Detect),
+                compliance.in_set(SoftTissueSystems::Compliance),
+                lcp.in_set(SoftTissueSystems::Lcp),
+                correct.in_set(SoftTissueSystems::Correct),
+                (refine, end_tool_steps)
+                    .chain()
+                    .in_set(SoftTissueSystems::Refine),
+            ),
+        );
+        #[cfg(feature = "gpu")]
+        app.add_systems(
+            self.schedule,
+            ensure_gpu.in_set(SoftTissueSystems::Detect).before(detect),
+        );
+    }
+}
+
+/// Tool poses from their `Transform` (`f32` → `f64` at the edge).
+fn tool_poses(mut tools: Query<(&mut Tool, &Transform)>, mut diag: ResMut<SoftTissueDiagnostics>) {
+    for (mut tool, tf) in &mut tools {
+        let (rot, pos) = (tf.rotation, tf.translation);
+        let q = nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(
+            rot.w as f64,
+            rot.x as f64,
+            rot.y as f64,
+            rot.z as f64,
+        ));
+        let t = DVec3::new(pos.x as f64, pos.y as f64, pos.z as f64);
+        if let Err(e) = tool.set_position(t, q) {
+            diag.errors += 1;
+            warn!("tool pose rejected: {e}");
+        }
+    }
+}
+
+/// Writes [`ComplianceOverride`] into the solver's per-body mode.
+fn apply_compliance_overrides(
+    mut contacts: ResMut<SoftTissueContacts>,
+    bodies: Query<(&SoftBody, Option<&ComplianceOverride>)>,
+) {
+    let solver = &mut contacts.bypass_change_detection().solver;
+    let default = solver.settings().compliance;
+    for (body, ov) in &bodies {
+        let want = ov.map(|c| c.0);
+        if solver.body_compliance(body.id()) != want.unwrap_or(default) {
+            solver.set_body_compliance(body.id(), want);
+        }
+    }
+}
+
+fn detect(
+    config: Res<SoftTissueConfig>,
+    mut contacts: ResMut<SoftTissueContacts>,
+    bodies: Query<&'static SoftBody>,
+    tools: Query<&'static Tool>,
+    all_bodies: Query<Entity, With<SoftBody>>,
+    all_tools: Query<Entity, With<Tool>>,
+    mut diag: ResMut<SoftTissueDiagnostics>,
+) {
+    let contacts = &mut *contacts;
+    contacts.bodies.clear();
+    contacts.bodies.extend(all_bodies.iter());
+    contacts.bodies.sort_unstable();
+    contacts.tools.clear();
+    contacts.tools.extend(all_tools.iter());
+    contacts.tools.sort_unstable();
+    contacts.active = config.contacts
+        && config.timestep_ok()
+        && phases::can_touch(contacts.bodies.len(), contacts.tools.len());
+    if !contacts.active {
+        return;
+    }
+    if *contacts.solver.settings() != config.contact
+        && let Err(e) = contacts.solver.set_settings(config.contact)
+    {
+        diag.errors += 1;
+        warn!("contact settings rejected: {e}");
+    }
+    diag.detect_runs += 1;
+    let b = BodyView {
+        q: &bodies,
+        e: &contacts.bodies,
+    };
+    let t = ToolView {
+        q: &tools,
+        e: &contacts.tools,
+    };
+    if let Err(e) = contacts
+        .solver
+        .detect(&b, &t, config.timestep, PassKind::First)
+    {
+        diag.errors += 1;
+        warn!("detection failed: {e}");
+        contacts.active = false;
+        return;
+    }
+    if contacts.solver.contacts().is_empty() {
+        contacts.active = false;
+    }
+}
+
+/// Whether the bodies and tools detection listed are all still there; if not,
+/// the step's contact response is skipped (counted as an error).
+fn listed_present(
+    contacts: &SoftTissueContacts,
+    bodies: &Query<&'static mut SoftBody>,
+    tools: Option<&Query<&'static mut Tool>>,
+    diag: &mut SoftTissueDiagnostics,
+) -> bool {
+    let ok = all_present(bodies, &contacts.bodies)
+        && tools.is_none_or(|t| all_present(t, &contacts.tools));
+    if !ok {
+        diag.errors += 1;
+        warn!(
+            "a body or tool was removed during the contact phases; this step's response is skipped"
+        );
+    }
+    ok
+}
+
+/// The GPU compliance builder, created once a render device exists.
+#[cfg(feature = "gpu")]
+#[derive(Resource, Debug)]
+pub struct GpuBackend(pub crate::gpu::GpuCompliance);
+
+#[cfg(feature = "gpu")]
+fn ensure_gpu(
+    mut commands: Commands,
+    config: Res<SoftTissueConfig>,
+    existing: Option<Res<GpuBackend>>,
+    device: Option<Res<bevy::render::renderer::RenderDevice>>,
+    queue: Option<Res<bevy::render::renderer::RenderQueue>>,
+) {
+    if let Some(min_rows) = config.gpu.min_rows()
+        && existing.is_none()
+        && let (Some(d), Some(q)) = (device, queue)
+    {
+        commands.insert_resource(GpuBackend(crate::gpu::GpuCompliance::new(
+            d.clone(),
+            q.clone(),
+            min_rows,
+        )));
+    }
+}
+
+fn compliance(
+    config: Res<SoftTissueConfig>,
+    mut contacts: ResMut<SoftTissueContacts>,
+    mut bodies: Query<&'static mut SoftBody>,
+    mut diag: ResMut<SoftTissueDiagnostics>,
+    #[cfg(feature = "gpu")] gpu: Option<ResMut<GpuBackend>>,
+) {
+    if !contacts.active {
+        return;
+    }
+    let contacts = &mut *contacts;
+    if !listed_present(contacts, &bodies, None, &mut diag) {
+        contacts.active = false;
+        return;
+    }
+    let mut b = BodyViewMut {
+        q: &mut bodies,
+        e: &contacts.bodies,
+    };
+    diag.compliance_builds += 1;
+    #[cfg(feature = "gpu")]
+    let result = match (gpu, config.gpu.min_rows()) {
+        (Some(mut g), Some(min_rows)) => {
+            let g = &mut g.0;
+            g.min_rows = min_rows;
+            let before = g.dispatches;
+            let r = contacts
+                .solver
+                .build_compliance(&mut b, PassKind::First, Some(g));
+            diag.gpu_dispatches += g.dispatches - before;
+            r
+        }
+        _ => contacts
+            .solver
+            .build_compliance(&mut b, PassKind::First, None),
+    };
+    #[cfg(not(feature = "gpu"))]
+    let result = {
+        let _ = &config;
+        contacts
+            .solver
+            .build_compliance(&mut b, PassKind::First, None)
+    };
+    if let Err(e) = result {
+        diag.errors += 1;
+        warn!("compliance failed: {e}");
+        contacts.active = false;
+    }
+}
+
+fn lcp(
+    mut contacts: ResMut<SoftTissueContacts>,
+    bodies: Query<&'static SoftBody>,
+    mut diag: ResMut<SoftTissueDiagnostics>,
+) {
+    if !contacts.active {
+        return;
+    }
+    let contacts = &mut *contacts;
+    if !all_present(&bodies, &contacts.bodies) {
+        contacts.active = false;
+        return;
+    }
+    let b = BodyView {
+        q: &bodies,
+        e: &contacts.bodies,
+    };
+    diag.lcp_solves += 1;
+    contacts.solver.solve_lcp(&b, PassKind::First);
+}
+
+fn correct(
+    mut contacts: ResMut<SoftTissueContacts>,
+    mut bodies: Query<&'static mut SoftBody>,
+    mut tools: Query<&'static mut Tool>,
+    mut diag: ResMut<SoftTissueDiagnostics>,
+) {
+    let contacts = &mut *contacts;
+    if !contacts.active {
+        return;
+    }
+    if !listed_present(contacts, &bodies, Some(&tools), &mut diag) {
+        contacts.active = false;
+        return;
+    }
+    let mut b = BodyViewMut {
+        q: &mut bodies,
+        e: &contacts.bodies,
+    };
+    let mut t = ToolViewMut {
+        q: &mut tools,
+        e: &contacts.tools,
+    };
+    if let Err(e) = contacts.solver.correct(&mut b, &mut t, PassKind::First) {
+        diag.errors += 1;
+        warn!("contact correction failed: {e}");
+        contacts.active = false;
+    }
+}
+
+fn refine(
+    config: Res<SoftTissueConfig>,
+    mut contacts: ResMut<SoftTissueContacts>,
+    mut bodies: Query<&'static mut SoftBody>,
+    mut tools: Query<&'static mut Tool>,
+    mut diag: ResMut<SoftTissueDiagnostics>,
+) {
+    let contacts = &mut *contacts;
+    if !contacts.active {
+        return;
+    }
+    if !listed_present(contacts, &bodies, Some(&tools), &mut diag) {
+        contacts.active = false;
+        return;
+    }
+    let mut b = BodyViewMut {
+        q: &mut bodies,
+        e: &contacts.bodies,
+    };
+    let mut t = ToolViewMut {
+        q: &mut tools,
+        e: &contacts.tools,
+    };
+    if let Err(e) = contacts.solver.refine(&mut b, &mut t, config.timestep) {
+        diag.errors += 1;
+        warn!("contact refinement failed: {e}");
+    }
+}
+
+/// Without a contact response this step, forgets warm-start forces and
+/// zeroes every tool's reaction; then every tool ends its step.
+fn end_tool_steps(mut contacts: ResMut<SoftTissueContacts>, mut tools: Query<&'static mut Tool>) {
+    let contacts = &mut *contacts;
+    if !contacts.active {
+        let none: &mut [&mut crate::contact::RigidTool] = &mut [];
+        contacts.solver.clear_forces(none);
+        for mut t in &mut tools {
+            t.0.set_reaction(DVec3::zeros(), DVec3::zeros());
+        }
+    }
+    for mut t in &mut tools {
+        phases::end_step(&mut t.0);
+    }
+}
