@@ -50,6 +50,9 @@ fn main() -> ExitCode {
         H,
     )))
     .add_systems(Startup, setup);
+    // Driving `update` by hand: finish the plugins' set-up first, as `run` does.
+    app.finish();
+    app.cleanup();
     let mut updates = 0;
     let mut loaded_at = None;
     loop {

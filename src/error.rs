@@ -126,6 +126,10 @@ pub enum SoftTissueError {
     /// A contact tool shape is invalid.
     #[error("invalid tool shape: {0}")]
     InvalidShape(String),
+    /// The background factorization panicked; its slot was released and the
+    /// body keeps its previous factor.
+    #[error("the background factorization panicked: {0}")]
+    WorkerPanic(String),
     /// The GPU path failed (device, shader or validation error).
     #[error("GPU compliance: {0}")]
     Gpu(String),
@@ -148,6 +152,37 @@ pub(crate) fn check_range(name: &'static str, value: f64, min: f64, max: f64) ->
             name,
             value,
             reason: "out of range or not finite",
+        });
+    }
+    Ok(())
+}
+
+/// The time steps the solver accepts, seconds: 1 ns to 10⁵ s. Below, `h²`
+/// terms underflow against the mass; steps of minutes or hours are a
+/// quasi-static solve (the implicit step goes to equilibrium); above, the
+/// `h²` terms head for overflow.
+pub const TIMESTEP_RANGE: (f64, f64) = (1e-9, 1e5);
+
+/// Checks a time step against [`TIMESTEP_RANGE`].
+pub fn check_timestep(h: f64) -> Result<()> {
+    if !(h.is_finite() && h >= TIMESTEP_RANGE.0 && h <= TIMESTEP_RANGE.1) {
+        return Err(SoftTissueError::InvalidParameter {
+            name: "h (time step)",
+            value: h,
+            reason: "must be finite and between 1 ns and 1e5 s",
+        });
+    }
+    Ok(())
+}
+
+/// Checks that a vector's squared norm is finite (its components alone can
+/// be finite while `|v|²` overflows, which CG would then misread).
+pub(crate) fn check_vector(name: &'static str, v: &crate::math::Vec3) -> Result<()> {
+    if !v.norm_squared().is_finite() {
+        return Err(SoftTissueError::InvalidParameter {
+            name,
+            value: v.amax(),
+            reason: "not finite, or its squared norm overflows",
         });
     }
     Ok(())

@@ -77,9 +77,10 @@ pub mod prelude {
     pub use crate::mesh::{Surface, TetMesh, ValidateOptions, generate, io};
     #[cfg(feature = "bevy")]
     pub use crate::plugin::{
-        BodyContacts, ComplianceOverride, FixedNodes, GpuMode, PreconditionerOverride, SoftBody,
-        SoftBodyFromAsset, SoftTissueConfig, SoftTissueContacts, SoftTissueDiagnostics,
-        SoftTissuePlugins, SoftTissueSystems, TetMeshAsset, Tool, ToolReaction,
+        BodyContacts, ComplianceOverride, FailedPhase, FixedNodes, GpuMode, PreconditionerOverride,
+        SoftBody, SoftBodyError, SoftBodyFailed, SoftBodyFromAsset, SoftTissueConfig,
+        SoftTissueContacts, SoftTissueDiagnostics, SoftTissuePlugins, SoftTissueSystems,
+        TetMeshAsset, Tool, ToolReaction,
     };
     pub use crate::scene::Scene;
     pub use crate::solver::PreconditionerKind;

@@ -19,6 +19,10 @@
 //! cataract scene) is `Some(0.0)`, and its contacts get no friction rows.
 
 use crate::error::{Result, SoftTissueError, check_positive, check_range};
+
+/// The largest Young's modulus or density accepted, 1e15 (Pa or kg/m³): six
+/// orders above steel's modulus, far from where `h² K` overflows.
+pub const MAX_MODULUS: f64 = 1e15;
 use crate::math::Vec3;
 use crate::mesh::TetMesh;
 
@@ -138,9 +142,11 @@ impl TissueMaterial {
     }
 
     /// Checks every parameter and returns a clear error for the first bad one.
+    /// Moduli and densities above [`MAX_MODULUS`] are refused: a stiffness
+    /// that large makes `h²K` overflow in assembly.
     pub fn validate(&self) -> Result<()> {
-        check_positive("density", self.density)?;
-        check_positive("young", self.young)?;
+        check_range("density", self.density, 1e-12, MAX_MODULUS)?;
+        check_range("young", self.young, 1e-12, MAX_MODULUS)?;
         if !self.poisson.is_finite() || self.poisson <= -1.0 || self.poisson >= 0.5 {
             return Err(SoftTissueError::InvalidParameter {
                 name: "poisson",
@@ -169,6 +175,13 @@ impl TissueMaterial {
             }
             check_positive("radial.core_radius", *core_radius)?;
             check_positive("radial.factor", *factor)?;
+            if self.young * factor > MAX_MODULUS {
+                return Err(SoftTissueError::InvalidParameter {
+                    name: "radial.factor",
+                    value: *factor,
+                    reason: "young × factor exceeds the largest modulus accepted (1e15 Pa)",
+                });
+            }
             if let Transition::Smooth { width } = transition {
                 check_positive("radial.width", *width)?;
             }
@@ -176,6 +189,7 @@ impl TissueMaterial {
         if let StiffnessField::PerElement(v) = &self.stiffness {
             for &e in v {
                 check_positive("per_element_young", e)?;
+                check_range("per_element_young", e, 0.0, MAX_MODULUS)?;
             }
         }
         Ok(())

@@ -522,3 +522,144 @@ fn lens_loads_through_the_asset_server() {
     let msg = err.to_string();
     assert!(msg.contains("malformed") && msg.contains("msh"), "{msg}");
 }
+
+fn positions(app: &App, e: Entity) -> Vec<bevy_soft_tissue::math::Vec3> {
+    app.world().get::<SoftBody>(e).unwrap().positions().to_vec()
+}
+
+/// A body whose step fails is put back, marked and reported; the others go
+/// on; the user clears the cause and the mark and it steps again.
+#[test]
+fn a_failing_body_is_stopped_reported_and_resumes() {
+    use bevy::ecs::message::Messages;
+    use bevy_soft_tissue::plugin::{FailedPhase, SoftBodyError, SoftBodyFailed};
+    let mut app = app(SoftTissueConfig {
+        timestep: H,
+        gravity: Some(bevy::math::DVec3::new(0.0, 0.0, -9.81)),
+        ..Default::default()
+    });
+    let a = app.world_mut().spawn(cube(4e-3, 2, 0.0)).id();
+    let b = app.world_mut().spawn(cube(4e-3, 2, 0.05)).id();
+    steps(&mut app, 3);
+    // Forces that fit one by one but whose squared norms overflow together.
+    {
+        let mut body = app.world_mut().get_mut::<SoftBody>(a).unwrap();
+        for n in 0..3 {
+            body.set_external_force(n, v3(1e154, 0.0, 0.0)).unwrap();
+        }
+    }
+    let (a0, b0) = (positions(&app, a), positions(&app, b));
+    steps(&mut app, 1);
+    let failed = app.world().get::<SoftBodyFailed>(a).expect("marked");
+    assert_eq!(failed.phase, FailedPhase::FreeMotion);
+    assert_eq!(
+        positions(&app, a),
+        a0,
+        "not put back to its state before the step"
+    );
+    assert_ne!(positions(&app, b), b0, "the other body stopped too");
+    let messages = app.world().resource::<Messages<SoftBodyError>>();
+    let sent: Vec<_> = messages.get_cursor().read(messages).cloned().collect();
+    assert!(
+        sent.iter()
+            .any(|m| m.entity == Some(a) && m.phase == Some(FailedPhase::FreeMotion)),
+        "{sent:?}"
+    );
+    steps(&mut app, 5);
+    assert_eq!(positions(&app, a), a0, "a failed body is left alone");
+    let d = app.world().resource::<SoftTissueDiagnostics>();
+    assert_eq!(d.failed_bodies, 1);
+    // The user removes the cause and the mark: it steps again.
+    app.world_mut()
+        .get_mut::<SoftBody>(a)
+        .unwrap()
+        .clear_external_forces();
+    app.world_mut().entity_mut(a).remove::<SoftBodyFailed>();
+    steps(&mut app, 5);
+    assert!(app.world().get::<SoftBodyFailed>(a).is_none());
+    assert!(
+        positions(&app, a)[0].z < a0[0].z,
+        "it did not resume falling"
+    );
+    assert_eq!(
+        app.world()
+            .resource::<SoftTissueDiagnostics>()
+            .failed_bodies,
+        1
+    );
+}
+
+/// Nodes fixed by `FixedNodes` are freed when taken out of the list or when
+/// the component is removed.
+#[test]
+fn fixed_nodes_are_freed_again() {
+    use bevy_soft_tissue::body::NodeConstraint;
+    use bevy_soft_tissue::plugin::FixedNodes;
+    let mut app = app(SoftTissueConfig {
+        timestep: H,
+        ..Default::default()
+    });
+    let e = app
+        .world_mut()
+        .spawn((cube(4e-3, 1, 0.0), FixedNodes(vec![0, 1, 2])))
+        .id();
+    steps(&mut app, 1);
+    let constraint = |app: &App, n: usize| app.world().get::<SoftBody>(e).unwrap().constraints()[n];
+    assert_eq!(constraint(&app, 2), NodeConstraint::Fixed);
+    app.world_mut().get_mut::<FixedNodes>(e).unwrap().0 = vec![0, 1];
+    steps(&mut app, 1);
+    assert_eq!(constraint(&app, 2), NodeConstraint::Free);
+    assert_eq!(constraint(&app, 1), NodeConstraint::Fixed);
+    app.world_mut().entity_mut(e).remove::<FixedNodes>();
+    steps(&mut app, 1);
+    assert_eq!(constraint(&app, 0), NodeConstraint::Free);
+    assert_eq!(constraint(&app, 1), NodeConstraint::Free);
+}
+
+/// A time step of 0, NaN, infinite or absurd does not panic, at build or at
+/// run time: it is reported and the bodies wait for a usable one.
+#[test]
+fn bad_timesteps_are_reported_not_panics() {
+    for h in [0.0, -1.0, f64::NAN, f64::INFINITY, 1e-12, 1e9] {
+        let mut app = App::new();
+        app.add_plugins((
+            MinimalPlugins,
+            SoftTissuePlugins::default().with_config(SoftTissueConfig {
+                timestep: h,
+                ..Default::default()
+            }),
+        ))
+        .insert_resource(TimeUpdateStrategy::ManualDuration(Duration::from_secs_f64(
+            H,
+        )));
+        let e = app.world_mut().spawn(cube(4e-3, 1, 0.0)).id();
+        for _ in 0..5 {
+            app.update();
+        }
+        assert!(
+            app.world().resource::<SoftTissueDiagnostics>().errors > 0,
+            "h = {h}"
+        );
+        assert_eq!(
+            app.world().get::<SoftBody>(e).unwrap().step_index(),
+            0,
+            "h = {h}"
+        );
+        // A usable step at run time: it goes on.
+        app.world_mut().resource_mut::<SoftTissueConfig>().timestep = H;
+        for _ in 0..5 {
+            app.update();
+        }
+        let d = app.world().resource::<SoftTissueDiagnostics>();
+        assert!(
+            app.world().get::<SoftBody>(e).unwrap().step_index() > 0,
+            "h = {h}: {} steps, {} errors, fixed step {:?}, body h {}, failed {:?}",
+            d.steps,
+            d.errors,
+            app.world().resource::<Time<Fixed>>().timestep(),
+            app.world().get::<SoftBody>(e).unwrap().step_size(),
+            app.world()
+                .get::<bevy_soft_tissue::plugin::SoftBodyFailed>(e)
+        );
+    }
+}

@@ -73,7 +73,7 @@ pub use settings::ContactSettings;
 pub use tool::{Pose, RigidTool, ToolShape};
 pub use types::{Contact, ContactOther, ContactReport, ContactSide, PassKind, tangent_basis};
 
-use crate::error::{Result, SoftTissueError, check_positive};
+use crate::error::{Result, SoftTissueError, check_timestep};
 use crate::math::Vec3;
 use detect::{DetectBody, DetectParams};
 use jacobian::Jacobian;
@@ -100,6 +100,8 @@ pub struct ContactSolver {
     lcp_delta: Vec<f64>,
     warm: WarmStart,
     dx: Vec<Vec3>,
+    /// Per body index, per node: the contact force of the step, all passes.
+    node_forces: Vec<Vec<Vec3>>,
     report: ContactReport,
     h: f64,
     /// First passes so far (the prediction's step count).
@@ -184,6 +186,13 @@ impl ContactSolver {
         self.jac.entries.get(i).map(|e| &e[..]).unwrap_or(&[])
     }
 
+    /// The contact force on each node of body `i` in the last step, summed
+    /// over its passes (`Σ_passes Hᵀ λ`, newtons). With the implicit step these
+    /// are end-of-step forces: their work in the step is `Σ_n f_n · (x_n − x_n,start)`.
+    pub fn contact_forces(&self, i: usize) -> &[Vec3] {
+        self.node_forces.get(i).map(|f| &f[..]).unwrap_or(&[])
+    }
+
     /// Total contact force exerted on body `i` in the last pass (`Σ Hᵀ λ`).
     pub fn body_force(&self, i: usize) -> Vec3 {
         self.jacobian(i)
@@ -223,13 +232,18 @@ impl ContactSolver {
         pass: PassKind,
     ) -> Result<()> {
         let t0 = Instant::now();
-        check_positive("h", h)?;
+        check_timestep(h)?;
         self.h = h;
         self.contacts.clear();
         match pass {
             PassKind::First => {
                 self.report = ContactReport::default();
                 self.steps += 1;
+                self.node_forces.resize_with(bodies.len(), Vec::new);
+                for (i, f) in self.node_forces.iter_mut().enumerate() {
+                    f.clear();
+                    f.resize(bodies.body(i).num_nodes(), Vec3::zeros());
+                }
             }
             PassKind::Refine => self.report.pairs_tested = 0,
         }
@@ -270,7 +284,7 @@ impl ContactSolver {
         bodies: &B,
         h: f64,
     ) -> Result<()> {
-        check_positive("h", h)?;
+        check_timestep(h)?;
         for c in contacts {
             let sides = std::iter::once(&c.a).chain(match &c.other {
                 ContactOther::Body(b) => Some(b),
@@ -434,6 +448,13 @@ impl ContactSolver {
             entries: &self.jac.entries,
         };
         correct::apply(bodies, per, self.h, &self.lambda, &mut self.dx)?;
+        for (forces, entries) in self.node_forces.iter_mut().zip(&self.jac.entries) {
+            for e in entries {
+                if let Some(f) = forces.get_mut(e.node as usize) {
+                    *f += e.h * self.lambda[e.row as usize];
+                }
+            }
+        }
         correct::tool_reactions(tools, &self.contacts, pass);
         self.report.correct += t0.elapsed().as_secs_f64();
         Ok(())
@@ -470,6 +491,9 @@ impl ContactSolver {
         }
         for p in &mut self.predict {
             p.forget();
+        }
+        for f in &mut self.node_forces {
+            f.fill(Vec3::zeros());
         }
         for i in 0..tools.len() {
             tools.tool_mut(i).set_reaction(Vec3::zeros(), Vec3::zeros());

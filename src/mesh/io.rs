@@ -1,11 +1,13 @@
 //! Mesh file formats: Gmsh MSH 4.1 (ASCII and binary, read and write) and
 //! TetGen `.node` / `.ele` (read).
 //!
-//! Only linear tetrahedra (`Tet4`, Gmsh type 4) are read from MSH files; other
+//! Linear tetrahedra (Gmsh type 4) are read from MSH files, and quadratic ones
+//! (type 11, TetGen's 10-node elements) keep their four corners; other
 //! element blocks (surface triangles, lines, points) are skipped. Malformed
-//! files give [`SoftTissueError::Parse`] with the reason, never a panic.
+//! files give [`SoftTissueError::Parse`] naming the section and the line or
+//! byte offset, never a panic; no count read from a file reserves more memory
+//! than the file's size can justify.
 
-use std::collections::HashMap;
 use std::path::Path;
 
 use crate::error::{Result, SoftTissueError};
@@ -31,76 +33,12 @@ pub fn load_msh(path: impl AsRef<Path>, options: ValidateOptions) -> Result<TetM
     parse_msh(&read(path.as_ref())?, options)
 }
 
-/// Parses the bytes of a Gmsh MSH 4.1 file (ASCII or binary).
+/// Parses the bytes of a Gmsh MSH 4.1 file (ASCII or binary; see
+/// [`super::msh`] for what is read). Nodes that no tetrahedron uses (those of
+/// surface, line and point elements, or the midside nodes of quadratic
+/// tetrahedra) are dropped.
 pub fn parse_msh(bytes: &[u8], options: ValidateOptions) -> Result<TetMesh> {
-    const F: &str = "Gmsh MSH 4.1";
-    let msh = mshio::parse_msh_bytes(bytes).map_err(|e| {
-        let text = format!("{e:?}");
-        parse_err(F, text.chars().take(300).collect::<String>())
-    })?;
-    let nodes = msh
-        .data
-        .nodes
-        .ok_or_else(|| parse_err(F, "no $Nodes section"))?;
-    let elements = msh
-        .data
-        .elements
-        .ok_or_else(|| parse_err(F, "no $Elements section"))?;
-    let mut positions = Vec::new();
-    let mut tag_to_index: HashMap<u64, usize> = HashMap::new();
-    let mut next_tag = nodes.min_node_tag;
-    for block in &nodes.node_blocks {
-        let base = positions.len();
-        match &block.node_tags {
-            Some(map) => {
-                for (&tag, &i) in map {
-                    tag_to_index.insert(tag, base + i);
-                }
-            }
-            None => {
-                for i in 0..block.nodes.len() {
-                    tag_to_index.insert(next_tag + i as u64, base + i);
-                }
-            }
-        }
-        next_tag += block.nodes.len() as u64;
-        positions.extend(block.nodes.iter().map(|n| v3(n.x, n.y, n.z)));
-    }
-    let mut tets = Vec::new();
-    for block in &elements.element_blocks {
-        if block.element_type != mshio::ElementType::Tet4 {
-            continue;
-        }
-        for e in &block.elements {
-            if e.nodes.len() < 4 {
-                return Err(parse_err(
-                    F,
-                    format!(
-                        "element {} has {} nodes, expected 4",
-                        e.element_tag,
-                        e.nodes.len()
-                    ),
-                ));
-            }
-            let mut tet = [0usize; 4];
-            for (k, tag) in e.nodes[..4].iter().enumerate() {
-                tet[k] = *tag_to_index.get(tag).ok_or_else(|| {
-                    parse_err(
-                        F,
-                        format!(
-                            "element {} references unknown node tag {tag}",
-                            e.element_tag
-                        ),
-                    )
-                })?;
-            }
-            tets.push(tet);
-        }
-    }
-    if tets.is_empty() {
-        return Err(parse_err(F, "no linear tetrahedra (element type 4)"));
-    }
-    // Drop nodes that only belong to lower-dimensional entities.
+    let (positions, tets) = super::msh::parse(bytes)?;
     compact_and_build(positions, tets, options)
 }
 
@@ -109,6 +47,10 @@ fn compact_and_build(
     mut tets: Vec<[usize; 4]>,
     options: ValidateOptions,
 ) -> Result<TetMesh> {
+    if tets.iter().flatten().any(|&v| v >= positions.len()) {
+        // Let validation name the bad index.
+        return TetMesh::with_options(positions, tets, options);
+    }
     let mut used = vec![false; positions.len()];
     for t in &tets {
         for &v in t {
@@ -248,7 +190,8 @@ pub fn parse_tetgen(node: &str, ele: &str, options: ValidateOptions) -> Result<T
             format!("line {l}: dimension {dim}, expected 3"),
         ));
     }
-    let mut positions = Vec::with_capacity(count.min(1 << 24));
+    // A point takes a line of at least 8 bytes ("1 0 0 0\n"): reserve no more.
+    let mut positions = Vec::with_capacity(count.min(node.len() / 8));
     let mut first_index = 0usize;
     for (i, (l, toks)) in lines.take(count).enumerate() {
         let idx: usize = num(FN, l, toks.first())?;
@@ -291,7 +234,7 @@ pub fn parse_tetgen(node: &str, ele: &str, options: ValidateOptions) -> Result<T
             format!("line {l}: {per} nodes per element, expected 4 or 10"),
         ));
     }
-    let mut tets = Vec::with_capacity(count.min(1 << 24));
+    let mut tets = Vec::with_capacity(count.min(ele.len() / 10));
     for (l, toks) in lines.take(count) {
         let mut t = [0usize; 4];
         for (k, v) in t.iter_mut().enumerate() {
@@ -314,5 +257,6 @@ pub fn parse_tetgen(node: &str, ele: &str, options: ValidateOptions) -> Result<T
             ),
         ));
     }
-    TetMesh::with_options(positions, tets, options)
+    // 10-node elements: the midside nodes (used by no corner) are dropped.
+    compact_and_build(positions, tets, options)
 }

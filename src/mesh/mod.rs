@@ -21,6 +21,7 @@
 
 pub mod generate;
 pub mod io;
+mod msh;
 
 use std::collections::HashMap;
 
@@ -100,6 +101,14 @@ impl TetMesh {
         mut tets: Vec<[usize; 4]>,
         options: ValidateOptions,
     ) -> Result<Self> {
+        let mrv = options.min_relative_volume;
+        if !(mrv.is_finite() && (0.0..1.0).contains(&mrv)) {
+            return Err(SoftTissueError::InvalidParameter {
+                name: "min_relative_volume",
+                value: mrv,
+                reason: "must be finite and in [0, 1)",
+            });
+        }
         if positions.is_empty() {
             return Err(SoftTissueError::EmptyMesh("no vertices"));
         }

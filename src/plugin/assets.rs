@@ -129,17 +129,26 @@ impl SoftBodyFromAsset {
 pub struct MeshAssetPlugin;
 
 impl Plugin for MeshAssetPlugin {
-    fn build(&self, _app: &mut App) {}
+    fn build(&self, app: &mut App) {
+        // With `AssetPlugin` added first (as in `DefaultPlugins`), register now.
+        register(app);
+    }
 
     fn finish(&self, app: &mut App) {
-        // `finish` runs after every plugin is built, whatever their order.
-        if !app.world().contains_resource::<AssetServer>() {
-            return;
-        }
-        app.init_asset::<TetMeshAsset>()
-            .init_asset_loader::<TetMeshLoader>()
-            .add_systems(PreUpdate, spawn_loaded_bodies);
+        // Otherwise once every plugin is built, whatever their order.
+        register(app);
     }
+}
+
+fn register(app: &mut App) {
+    if !app.world().contains_resource::<AssetServer>()
+        || app.world().contains_resource::<Assets<TetMeshAsset>>()
+    {
+        return;
+    }
+    app.init_asset::<TetMeshAsset>()
+        .init_asset_loader::<TetMeshLoader>()
+        .add_systems(PreUpdate, spawn_loaded_bodies);
 }
 
 /// Marks a [`SoftBodyFromAsset`] whose failure was already reported.

@@ -72,10 +72,18 @@ pub struct BodyContacts {
     pub max_penetration: f64,
 }
 
-/// Nodes held in place (volume-vertex indices), applied when added or changed.
+/// Nodes held in place (volume-vertex indices), applied when added or
+/// changed. Nodes taken out of the list, or all of them when the component is
+/// removed, are freed again (nodes fixed through the core API, e.g.
+/// `DeformableBody::fix_where`, are not touched).
 #[derive(Component, Reflect, Debug, Clone, Default, PartialEq)]
 #[reflect(Component)]
 pub struct FixedNodes(pub Vec<usize>);
+
+/// The nodes a [`FixedNodes`] component fixed, to free them when it changes
+/// or goes.
+#[derive(Component, Debug, Clone, Default, PartialEq)]
+pub(crate) struct AppliedFixedNodes(pub(crate) Vec<usize>);
 
 /// Per-body preconditioner: written into the body's
 /// [`BodySettings::preconditioner`] (its home) when added or changed.
@@ -87,6 +95,43 @@ pub struct PreconditionerOverride(pub PreconditionerKind);
 /// changed; removing it returns the body to [`crate::contact::ContactSettings::compliance`].
 #[derive(Component, Debug, Clone, Copy, PartialEq)]
 pub struct ComplianceOverride(pub ComplianceMode);
+
+/// The phase of the pipeline in which a body failed.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Reflect)]
+pub enum FailedPhase {
+    /// Element rotations, forces, `A` and `b`.
+    Assemble,
+    /// The preconditioner refresh.
+    Factorize,
+    /// The conjugate gradient and integration.
+    FreeMotion,
+}
+
+/// Marks a body whose step failed: it was put back to its state at the
+/// start of that step, and the pipeline leaves it alone (it does not move,
+/// and takes part in no contact) until this component is removed. To go on,
+/// fix the cause (its forces, settings or state, `set_state` to start over)
+/// and remove the component; the other bodies never stop.
+#[derive(Component, Debug, Clone, PartialEq)]
+pub struct SoftBodyFailed {
+    /// Where it failed.
+    pub phase: FailedPhase,
+    /// Why.
+    pub error: crate::error::SoftTissueError,
+}
+
+/// Sent when a body fails a phase (see [`SoftBodyFailed`]), or when the
+/// contact response of a step fails (then `entity` is `None`: the step's
+/// contact forces were not applied, and the next step detects afresh).
+#[derive(Message, Debug, Clone, PartialEq)]
+pub struct SoftBodyError {
+    /// The body, if one failed.
+    pub entity: Option<Entity>,
+    /// The phase, for a body.
+    pub phase: Option<FailedPhase>,
+    /// What went wrong.
+    pub error: crate::error::SoftTissueError,
+}
 
 /// The scene's contact solver (a resource).
 #[derive(Resource, Debug, Default)]

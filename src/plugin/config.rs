@@ -78,9 +78,9 @@ impl Default for SoftTissueConfig {
 }
 
 impl SoftTissueConfig {
-    /// Whether [`Self::timestep`] is a usable step: finite, at least 1 µs
-    /// and at most 1 s.
+    /// Whether [`Self::timestep`] is a step the solver accepts
+    /// ([`crate::error::check_timestep`]: 1 ns to 1e5 s).
     pub fn timestep_ok(&self) -> bool {
-        self.timestep.is_finite() && (1e-6..=1.0).contains(&self.timestep)
+        crate::error::check_timestep(self.timestep).is_ok()
     }
 }

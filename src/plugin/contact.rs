@@ -6,7 +6,9 @@ use bevy::ecs::intern::Interned;
 use bevy::ecs::schedule::ScheduleLabel;
 use bevy::prelude::*;
 
-use super::components::{ComplianceOverride, SoftBody, SoftTissueContacts, Tool};
+use super::components::{
+    ComplianceOverride, SoftBody, SoftBodyError, SoftBodyFailed, SoftTissueContacts, Tool,
+};
 use super::config::SoftTissueConfig;
 use super::diagnostics::SoftTissueDiagnostics;
 use super::sets::SoftTissueSystems;
@@ -84,9 +86,10 @@ fn detect(
     mut contacts: ResMut<SoftTissueContacts>,
     bodies: Query<&'static SoftBody>,
     tools: Query<&'static Tool>,
-    all_bodies: Query<Entity, With<SoftBody>>,
+    all_bodies: Query<Entity, (With<SoftBody>, Without<SoftBodyFailed>)>,
     all_tools: Query<Entity, With<Tool>>,
     mut diag: ResMut<SoftTissueDiagnostics>,
+    mut messages: MessageWriter<SoftBodyError>,
 ) {
     let contacts = &mut *contacts;
     contacts.bodies.clear();
@@ -122,6 +125,11 @@ fn detect(
     {
         diag.errors += 1;
         warn!("detection failed: {e}");
+        messages.write(SoftBodyError {
+            entity: None,
+            phase: None,
+            error: e,
+        });
         contacts.active = false;
         return;
     }
@@ -180,6 +188,7 @@ fn compliance(
     mut bodies: Query<&'static mut SoftBody>,
     mut diag: ResMut<SoftTissueDiagnostics>,
     #[cfg(feature = "gpu")] gpu: Option<ResMut<GpuBackend>>,
+    mut messages: MessageWriter<SoftBodyError>,
 ) {
     if !contacts.active {
         return;
@@ -220,6 +229,11 @@ fn compliance(
     if let Err(e) = result {
         diag.errors += 1;
         warn!("compliance failed: {e}");
+        messages.write(SoftBodyError {
+            entity: None,
+            phase: None,
+            error: e,
+        });
         contacts.active = false;
     }
 }
@@ -250,6 +264,7 @@ fn correct(
     mut bodies: Query<&'static mut SoftBody>,
     mut tools: Query<&'static mut Tool>,
     mut diag: ResMut<SoftTissueDiagnostics>,
+    mut messages: MessageWriter<SoftBodyError>,
 ) {
     let contacts = &mut *contacts;
     if !contacts.active {
@@ -270,6 +285,11 @@ fn correct(
     if let Err(e) = contacts.solver.correct(&mut b, &mut t, PassKind::First) {
         diag.errors += 1;
         warn!("contact correction failed: {e}");
+        messages.write(SoftBodyError {
+            entity: None,
+            phase: None,
+            error: e,
+        });
         contacts.active = false;
     }
 }
@@ -280,6 +300,7 @@ fn refine(
     mut bodies: Query<&'static mut SoftBody>,
     mut tools: Query<&'static mut Tool>,
     mut diag: ResMut<SoftTissueDiagnostics>,
+    mut messages: MessageWriter<SoftBodyError>,
 ) {
     let contacts = &mut *contacts;
     if !contacts.active {
@@ -300,6 +321,11 @@ fn refine(
     if let Err(e) = contacts.solver.refine(&mut b, &mut t, config.timestep) {
         diag.errors += 1;
         warn!("contact refinement failed: {e}");
+        messages.write(SoftBodyError {
+            entity: None,
+            phase: None,
+            error: e,
+        });
     }
 }
 

@@ -5,10 +5,15 @@ use bevy::ecs::intern::Interned;
 use bevy::ecs::schedule::ScheduleLabel;
 use bevy::prelude::*;
 
-use super::components::{FixedNodes, PreconditionerOverride, SoftBody, SoftTissueContacts};
+use super::components::{
+    AppliedFixedNodes, FailedPhase, FixedNodes, PreconditionerOverride, SoftBody, SoftBodyError,
+    SoftBodyFailed, SoftTissueContacts,
+};
 use super::config::SoftTissueConfig;
 use super::diagnostics::SoftTissueDiagnostics;
 use super::sets::SoftTissueSystems;
+use crate::body::DeformableBody;
+use crate::error::SoftTissueError;
 use crate::math::Vec3 as DVec3;
 use crate::scene::phases;
 
@@ -34,16 +39,29 @@ impl Plugin for DeformationPlugin {
 
 /// Writes the config's scene-wide body settings (gravity, damping) and the
 /// per-body override components into each body's settings.
+#[allow(clippy::type_complexity)]
 fn apply_body_settings(
     config: Res<SoftTissueConfig>,
     mut bodies: Query<(
+        Entity,
         &mut SoftBody,
         Option<Ref<FixedNodes>>,
+        Option<&mut AppliedFixedNodes>,
         Option<&PreconditionerOverride>,
     )>,
+    mut removed: RemovedComponents<FixedNodes>,
     mut diag: ResMut<SoftTissueDiagnostics>,
+    mut commands: Commands,
 ) {
-    for (mut body, fixed, pre) in &mut bodies {
+    for e in removed.read() {
+        if let Ok((_, mut body, None, Some(mut applied), _)) = bodies.get_mut(e) {
+            for &n in &applied.0 {
+                let _ = body.free_node(n);
+            }
+            applied.0.clear();
+        }
+    }
+    for (e, mut body, fixed, applied, pre) in &mut bodies {
         let mut s = *body.settings();
         s.gravity = config.gravity.map(|g| DVec3::new(g.x, g.y, g.z));
         s.damping = config.damping;
@@ -51,37 +69,92 @@ fn apply_body_settings(
             s.preconditioner = p.0;
         }
         if s != *body.settings()
-            && let Err(e) = body.set_settings(s)
+            && let Err(err) = body.set_settings(s)
         {
             diag.errors += 1;
-            warn!("soft body settings rejected: {e}");
+            warn!("soft body settings rejected: {err}");
         }
-        if let Some(f) = fixed
-            && f.is_changed()
-            && let Err(e) = body.fix_nodes(&f.0)
-        {
+        let Some(f) = fixed else { continue };
+        if !f.is_changed() {
+            continue;
+        }
+        if let Err(err) = body.fix_nodes(&f.0) {
             diag.errors += 1;
-            warn!("fixed nodes rejected: {e}");
+            warn!("fixed nodes rejected: {err}");
+            continue;
+        }
+        match applied {
+            Some(mut applied) => {
+                for &n in &applied.0 {
+                    if !f.0.contains(&n) {
+                        let _ = body.free_node(n);
+                    }
+                }
+                applied.0.clear();
+                applied.0.extend_from_slice(&f.0);
+            }
+            None => {
+                commands.entity(e).insert(AppliedFixedNodes(f.0.clone()));
+            }
         }
     }
 }
 
+/// Marks `e` failed in `phase` (see [`SoftBodyFailed`]): back to its state
+/// at the start of the step, reported, left alone until the user clears it.
+fn fail(
+    e: Entity,
+    body: &mut DeformableBody,
+    phase: FailedPhase,
+    error: SoftTissueError,
+    commands: &mut Commands,
+    messages: &mut MessageWriter<SoftBodyError>,
+    diag: &mut SoftTissueDiagnostics,
+) {
+    body.restore_checkpoint();
+    diag.errors += 1;
+    diag.failed_bodies += 1;
+    warn!(
+        "soft body {e}: {phase:?} failed: {error}; it is back at its state at the start of \
+         the step and left alone until `SoftBodyFailed` is removed"
+    );
+    commands.entity(e).insert(SoftBodyFailed {
+        phase,
+        error: error.clone(),
+    });
+    messages.write(SoftBodyError {
+        entity: Some(e),
+        phase: Some(phase),
+        error,
+    });
+}
+
+/// The bodies the pipeline steps: not marked failed.
+type Live = (Entity, &'static mut SoftBody);
+
 fn assemble(
     config: Res<SoftTissueConfig>,
     contacts: Res<SoftTissueContacts>,
-    mut bodies: Query<&mut SoftBody>,
+    mut bodies: Query<Live, Without<SoftBodyFailed>>,
     mut diag: ResMut<SoftTissueDiagnostics>,
+    mut commands: Commands,
+    mut messages: MessageWriter<SoftBodyError>,
 ) {
     diag.begin_step();
-    if !config.timestep_ok() {
-        diag.errors += 1;
-        return;
-    }
-    for mut body in &mut bodies {
+    for (e, mut body) in &mut bodies {
         let body = &mut body.0;
-        if let Err(e) = phases::assemble(body, &contacts.solver, contacts.active, config.timestep) {
-            diag.errors += 1;
-            warn!("assembly failed: {e}");
+        body.checkpoint();
+        if let Err(err) = phases::assemble(body, &contacts.solver, contacts.active, config.timestep)
+        {
+            fail(
+                e,
+                body,
+                FailedPhase::Assemble,
+                err,
+                &mut commands,
+                &mut messages,
+                &mut diag,
+            );
             continue;
         }
         let r = *body.report();
@@ -91,32 +164,73 @@ fn assemble(
     }
 }
 
-fn factorize(mut bodies: Query<&mut SoftBody>, mut diag: ResMut<SoftTissueDiagnostics>) {
-    for mut body in &mut bodies {
-        if let Err(e) = phases::factorize(&mut body.0) {
-            diag.errors += 1;
-            warn!("factorization failed: {e}");
+fn factorize(
+    mut bodies: Query<Live, Without<SoftBodyFailed>>,
+    mut diag: ResMut<SoftTissueDiagnostics>,
+    mut commands: Commands,
+    mut messages: MessageWriter<SoftBodyError>,
+) {
+    for (e, mut body) in &mut bodies {
+        let body = &mut body.0;
+        let failures = body.report().preconditioner.failures;
+        if let Err(err) = phases::factorize(body) {
+            fail(
+                e,
+                body,
+                FailedPhase::Factorize,
+                err,
+                &mut commands,
+                &mut messages,
+                &mut diag,
+            );
             continue;
         }
         let r = body.report();
+        if r.preconditioner.failures > failures {
+            // A background factorization failed: the body goes on with its
+            // previous factor; reported, not fatal.
+            diag.worker_failures += r.preconditioner.failures - failures;
+            diag.errors += 1;
+            if let Some(err) = body.preconditioner().last_error() {
+                warn!("soft body {e}: background factorization failed: {err}");
+                messages.write(SoftBodyError {
+                    entity: Some(e),
+                    phase: Some(FailedPhase::Factorize),
+                    error: err.clone(),
+                });
+            }
+        }
         diag.factorize_ms += r.timings.factorize * 1e3;
         diag.factor_age = diag.factor_age.max(r.preconditioner.factor_age);
         diag.refreshes += r.preconditioner.refreshes;
     }
 }
 
-fn free_motion(mut bodies: Query<&mut SoftBody>, mut diag: ResMut<SoftTissueDiagnostics>) {
-    for mut body in &mut bodies {
-        match phases::free_motion(&mut body.0) {
+fn free_motion(
+    mut bodies: Query<Live, Without<SoftBodyFailed>>,
+    mut diag: ResMut<SoftTissueDiagnostics>,
+    mut commands: Commands,
+    mut messages: MessageWriter<SoftBodyError>,
+) {
+    for (e, mut body) in &mut bodies {
+        let body = &mut body.0;
+        match phases::free_motion(body) {
             Ok(cg) => {
                 let r = body.report();
                 diag.free_motion_ms += r.timings.cg_total * 1e3;
                 diag.cg_iterations += cg.iterations;
                 diag.cg_unconverged += usize::from(!cg.converged);
             }
-            Err(e) => {
-                diag.errors += 1;
-                warn!("free motion failed: {e}");
+            Err(err) => {
+                fail(
+                    e,
+                    body,
+                    FailedPhase::FreeMotion,
+                    err,
+                    &mut commands,
+                    &mut messages,
+                    &mut diag,
+                );
             }
         }
     }

@@ -64,6 +64,11 @@ pub struct SoftTissueDiagnostics {
     pub gpu_dispatches: u64,
     /// Counter: errors reported (each also logged as a warning).
     pub errors: u64,
+    /// Counter: bodies that failed a phase and were marked `SoftBodyFailed`.
+    pub failed_bodies: u64,
+    /// Counter: background factorizations that failed or panicked (the body
+    /// kept its factor; see `PreconditionerState::last_error`).
+    pub worker_failures: u64,
 }
 
 impl SoftTissueDiagnostics {

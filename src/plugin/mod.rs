@@ -82,8 +82,8 @@ use bevy::ecs::schedule::ScheduleLabel;
 
 pub use assets::{MeshAssetPlugin, SoftBodyFromAsset, TetMeshAsset, TetMeshLoader};
 pub use components::{
-    BodyContacts, ComplianceOverride, FixedNodes, PreconditionerOverride, SoftBody,
-    SoftTissueContacts, Tool, ToolReaction,
+    BodyContacts, ComplianceOverride, FailedPhase, FixedNodes, PreconditionerOverride, SoftBody,
+    SoftBodyError, SoftBodyFailed, SoftTissueContacts, Tool, ToolReaction,
 };
 pub use config::{GpuMode, SoftTissueConfig};
 pub use contact::ContactPlugin;

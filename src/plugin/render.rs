@@ -272,40 +272,69 @@ fn update_body_meshes(
     bodies: Query<(&SoftBody, &SurfaceMesh)>,
     cores: Query<&CoreMesh>,
     mut meshes: ResMut<Assets<Mesh>>,
+    mut normals: Local<Vec<Vec3>>,
 ) {
     for core in &cores {
         let (Ok((body, _)), Some(mut mesh)) = (bodies.get(core.body), meshes.get_mut(&core.handle))
         else {
             continue;
         };
-        let pos: Vec<[f32; 3]> = core
-            .vertices
-            .iter()
-            .map(|&v| body.positions()[v].map(|c| c as f32).into())
-            .collect();
-        write_positions(&mut mesh, &pos, &core.triangles);
+        write_positions(
+            &mut mesh,
+            body.positions(),
+            &core.vertices,
+            &core.triangles,
+            &mut normals,
+        );
     }
     for (body, sm) in &bodies {
         let Some(mut mesh) = meshes.get_mut(&sm.handle) else {
             continue;
         };
+        let surface = body.surface();
         write_positions(
             &mut mesh,
-            &surface_positions(body),
-            &body.surface().triangles,
+            body.positions(),
+            &surface.vertices,
+            &surface.triangles,
+            &mut normals,
         );
     }
 }
 
-/// Rewrites a mesh's positions and smooth normals in place.
-fn write_positions(mesh: &mut Mesh, pos: &[[f32; 3]], tris: &[[usize; 3]]) {
-    let n = normals(pos, tris);
-    if let Some(VertexAttributeValues::Float32x3(p)) = mesh.attribute_mut(Mesh::ATTRIBUTE_POSITION)
-    {
-        p.copy_from_slice(pos);
+/// Rewrites a mesh's positions (`x` at `vertices`) and smooth normals in
+/// place; `tris` index into `vertices`. `n` is scratch (no allocation once
+/// it has grown to the largest mesh).
+fn write_positions(
+    mesh: &mut Mesh,
+    x: &[crate::math::Vec3],
+    vertices: &[usize],
+    tris: &[[usize; 3]],
+    n: &mut Vec<Vec3>,
+) {
+    let p = |i: usize| {
+        let q = x[vertices[i]];
+        Vec3::new(q.x as f32, q.y as f32, q.z as f32)
+    };
+    n.clear();
+    n.resize(vertices.len(), Vec3::ZERO);
+    for t in tris {
+        let [a, b, c] = t.map(p);
+        let f = (b - a).cross(c - a);
+        for &i in t {
+            n[i] += f;
+        }
     }
-    if let Some(VertexAttributeValues::Float32x3(nn)) = mesh.attribute_mut(Mesh::ATTRIBUTE_NORMAL) {
-        nn.copy_from_slice(&n);
+    if let Some(VertexAttributeValues::Float32x3(pa)) = mesh.attribute_mut(Mesh::ATTRIBUTE_POSITION)
+    {
+        for (i, out) in pa.iter_mut().enumerate().take(vertices.len()) {
+            *out = p(i).to_array();
+        }
+    }
+    if let Some(VertexAttributeValues::Float32x3(na)) = mesh.attribute_mut(Mesh::ATTRIBUTE_NORMAL) {
+        for (out, v) in na.iter_mut().zip(n.iter()) {
+            *out = v.normalize_or_zero().to_array();
+        }
     }
 }
 

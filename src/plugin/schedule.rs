@@ -6,7 +6,9 @@ use bevy::ecs::intern::Interned;
 use bevy::ecs::schedule::ScheduleLabel;
 use bevy::prelude::*;
 
-use super::components::{BodyContacts, FixedNodes, SoftTissueContacts, ToolReaction};
+use super::components::{
+    BodyContacts, FixedNodes, SoftBodyError, SoftTissueContacts, ToolReaction,
+};
 use super::config::SoftTissueConfig;
 use super::diagnostics::SoftTissueDiagnostics;
 use super::sets::SoftTissueSystems;
@@ -38,6 +40,7 @@ impl Plugin for SoftTissueSchedulePlugin {
             .register_type::<FixedNodes>()
             .init_resource::<SoftTissueContacts>()
             .init_resource::<SoftTissueDiagnostics>()
+            .add_message::<SoftBodyError>()
             .configure_sets(
                 self.schedule,
                 (
@@ -51,7 +54,10 @@ impl Plugin for SoftTissueSchedulePlugin {
                     SoftTissueSystems::Refine,
                     SoftTissueSystems::Sync,
                 )
-                    .chain(),
+                    .chain()
+                    // No step at all with an unusable time step (reported by
+                    // `sync_timestep`); bodies wait for a usable one.
+                    .run_if(|c: Res<SoftTissueConfig>| c.timestep_ok()),
             );
         if self.config.timestep_ok() {
             if let Some(mut time) = app.world_mut().get_resource_mut::<Time<Fixed>>() {
@@ -62,7 +68,7 @@ impl Plugin for SoftTissueSchedulePlugin {
                 .resource_mut::<SoftTissueDiagnostics>()
                 .errors += 1;
             warn!(
-                "SoftTissueConfig::timestep = {} is not a usable step (1 µs to 1 s); Time<Fixed> keeps its own",
+                "SoftTissueConfig::timestep = {} is not a usable step (1 ns to 1e5 s); Time<Fixed> keeps its own",
                 self.config.timestep
             );
         }
@@ -82,7 +88,7 @@ fn sync_timestep(
     if !config.timestep_ok() {
         diag.errors += 1;
         warn!(
-            "SoftTissueConfig::timestep = {} is not a usable step (1 µs to 1 s)",
+            "SoftTissueConfig::timestep = {} is not a usable step (1 ns to 1e5 s)",
             config.timestep
         );
         return;

@@ -70,20 +70,21 @@
 pub mod cg;
 pub mod columns;
 pub mod ldlt;
+mod worker;
 
-use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{Arc, Mutex};
-
-use std::thread::JoinHandle;
+use std::sync::Arc;
 use std::time::Instant;
-
-use crossbeam::channel::{Receiver, Sender, TryRecvError, bounded};
 
 use crate::error::{Result, SoftTissueError};
 use crate::fem::assembly::BlockCsr;
 use crate::math::{Mat3, Vec3};
-use columns::{ColumnCache, ColumnPrefetch, FactorKey};
+use columns::{ColumnPrefetch, FactorKey};
 use ldlt::{LdltFactor, LdltSymbolic};
+pub use worker::AsyncFactorizer;
+
+/// Steps between refreshes on the stepping thread when an `Async`
+/// preconditioner has no worker thread (it could not be started or stopped).
+pub const WORKER_FALLBACK_PERIOD: u64 = 4;
 
 /// Applies `z = P⁻¹ r`.
 pub trait Preconditioner: Send {
@@ -144,6 +145,12 @@ pub struct PreconditionerStats {
     pub blocking_seconds: f64,
     /// Factorizations that failed (the previous factor was kept).
     pub failures: u64,
+    /// Of those, background factorizations that panicked (caught; the
+    /// worker's slot was released and the worker goes on).
+    pub worker_panics: u64,
+    /// Refreshes made on the stepping thread because the background worker
+    /// could not be started or has stopped (every [`WORKER_FALLBACK_PERIOD`] steps).
+    pub fallback_refreshes: u64,
     /// Blocking refactorizations because CG did not converge with the old factor.
     pub rescues: u64,
     /// Solves that had a rotation warp to apply.
@@ -153,246 +160,6 @@ pub struct PreconditionerStats {
     /// Node columns the background worker solved with its new factors for the
     /// contact compliance (see [`crate::contact::compliance`]).
     pub precomputed_columns: u64,
-}
-
-struct Job {
-    values: Vec<Mat3>,
-    rotations: Vec<Mat3>,
-    factor: LdltFactor,
-    step: u64,
-    /// Nodes whose columns to precompute with the new factor (may be empty).
-    hint: Vec<u32>,
-    columns: Option<ColumnCache>,
-}
-
-struct Done {
-    values: Vec<Mat3>,
-    rotations: Vec<Mat3>,
-    factor: LdltFactor,
-    step: u64,
-    result: Result<()>,
-    seconds: f64,
-    hint: Vec<u32>,
-    /// The precomputed columns (when the job had a hint and the factorization succeeded).
-    columns: Option<ColumnCache>,
-}
-
-/// Locks `m`; a panic elsewhere while it was held leaves the data usable.
-fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
-    m.lock().unwrap_or_else(|e| e.into_inner())
-}
-
-/// Factorizations running in background workers, all bodies together.
-static IN_FLIGHT: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
-
-/// Factorizers waiting for a background slot, oldest first.
-static WAITING: std::sync::Mutex<std::collections::VecDeque<u64>> =
-    std::sync::Mutex::new(std::collections::VecDeque::new());
-/// Identity of each [`AsyncFactorizer`] in [`WAITING`].
-static NEXT_ID: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
-
-/// How many background factorizations may run at once: one core is left to the
-/// stepping thread (at least one worker). Asked of the OS once.
-fn max_in_flight() -> usize {
-    static LIMIT: std::sync::OnceLock<usize> = std::sync::OnceLock::new();
-    *LIMIT.get_or_init(|| {
-        std::thread::available_parallelism()
-            .map(|n| n.get().saturating_sub(1))
-            .unwrap_or(1)
-            .max(1)
-    })
-}
-
-/// Background `LDLᵀ` worker (see the module docs).
-pub struct AsyncFactorizer {
-    id: u64,
-    tx: Option<Sender<Job>>,
-    rx: Receiver<Done>,
-    handle: Option<JoinHandle<()>>,
-    alive: Arc<AtomicBool>,
-    in_flight: bool,
-    spare: Option<(Vec<Mat3>, Vec<Mat3>, LdltFactor)>,
-    hint: Vec<u32>,
-}
-
-impl std::fmt::Debug for AsyncFactorizer {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("AsyncFactorizer")
-            .field("in_flight", &self.in_flight)
-            .finish()
-    }
-}
-
-impl AsyncFactorizer {
-    /// Starts a worker for matrices over `pattern` with analysis `symbolic`.
-    pub fn new(a: &BlockCsr, symbolic: &Arc<LdltSymbolic>) -> Self {
-        let (tx, job_rx) = bounded::<Job>(1);
-        let (done_tx, rx) = bounded::<Done>(1);
-        let alive = Arc::new(AtomicBool::new(true));
-        let pattern = Arc::clone(&a.pattern);
-        let sym = Arc::clone(symbolic);
-        let alive_w = Arc::clone(&alive);
-        let handle = std::thread::Builder::new()
-            .name("soft-tissue-ldlt".into())
-            .spawn(move || {
-                let mut work = Vec::with_capacity(sym.n);
-                let mut mat = BlockCsr {
-                    pattern,
-                    values: Vec::new(),
-                };
-                while let Ok(mut job) = job_rx.recv() {
-                    let t0 = Instant::now();
-                    mat.values = std::mem::take(&mut job.values);
-                    let result = sym.factorize(&mat, &mut job.factor, &mut work);
-                    // The compliance's node columns of the new factor, here
-                    // rather than on the stepping thread.
-                    // (A job carries a cache only when it has a hint.)
-                    if let (Ok(()), Some(c)) = (&result, job.columns.as_mut()) {
-                        c.precompute(&job.factor, FactorKey::Preconditioner(0), &job.hint);
-                    }
-                    IN_FLIGHT.fetch_sub(1, Ordering::SeqCst);
-                    let done = Done {
-                        values: std::mem::take(&mut mat.values),
-                        rotations: job.rotations,
-                        factor: job.factor,
-                        step: job.step,
-                        result,
-                        seconds: t0.elapsed().as_secs_f64(),
-                        hint: job.hint,
-                        columns: job.columns,
-                    };
-                    if done_tx.send(done).is_err() {
-                        break;
-                    }
-                }
-                alive_w.store(false, Ordering::SeqCst);
-            })
-            .ok();
-        let spare = Some((
-            a.values.clone(),
-            vec![Mat3::identity(); a.n()],
-            symbolic.alloc_factor(),
-        ));
-        Self {
-            id: NEXT_ID.fetch_add(1, Ordering::Relaxed),
-            tx: Some(tx),
-            rx,
-            handle,
-            alive,
-            in_flight: false,
-            spare,
-            hint: Vec::new(),
-        }
-    }
-
-    /// A flag that turns false once the worker thread has exited.
-    pub fn alive_flag(&self) -> Arc<AtomicBool> {
-        Arc::clone(&self.alive)
-    }
-
-    /// Whether a factorization is running.
-    pub fn in_flight(&self) -> bool {
-        self.in_flight
-    }
-
-    fn try_take(&mut self, block: bool) -> Option<Done> {
-        if !self.in_flight {
-            return None;
-        }
-        let got = if block {
-            self.rx.recv().ok()
-        } else {
-            match self.rx.try_recv() {
-                Ok(d) => Some(d),
-                Err(TryRecvError::Empty) => None,
-                Err(TryRecvError::Disconnected) => {
-                    self.in_flight = false;
-                    None
-                }
-            }
-        };
-        if got.is_some() {
-            self.in_flight = false;
-        }
-        got
-    }
-
-    fn submit(
-        &mut self,
-        a: &BlockCsr,
-        rotations: &[Mat3],
-        step: u64,
-        prefetch: &mut ColumnPrefetch,
-    ) {
-        if self.in_flight {
-            return;
-        }
-        // Share the machine: with several bodies, at most `cores − 1` factorizations run
-        // at once; the others queue and hand over their matrix when their turn comes.
-        let limit = max_in_flight();
-        {
-            let mut waiting = lock(&WAITING);
-            let first = waiting.front().is_none_or(|&w| w == self.id);
-            let got = first
-                && IN_FLIGHT
-                    .fetch_update(Ordering::SeqCst, Ordering::SeqCst, |n| {
-                        (n < limit).then_some(n + 1)
-                    })
-                    .is_ok();
-            if !got {
-                if !waiting.contains(&self.id) {
-                    waiting.push_back(self.id);
-                }
-                return;
-            }
-            if waiting.front() == Some(&self.id) {
-                waiting.pop_front();
-            }
-        }
-        let (Some(tx), Some((mut values, mut rots, factor))) = (&self.tx, self.spare.take()) else {
-            return;
-        };
-        values.copy_from_slice(&a.values);
-        rots.copy_from_slice(rotations);
-        let mut hint = std::mem::take(&mut self.hint);
-        hint.clear();
-        hint.extend_from_slice(&prefetch.hint);
-        let columns = if hint.is_empty() {
-            None
-        } else {
-            Some(prefetch.spare.take().unwrap_or_default())
-        };
-        let job = Job {
-            values,
-            rotations: rots,
-            factor,
-            step,
-            hint,
-            columns,
-        };
-        if tx.send(job).is_ok() {
-            self.in_flight = true;
-        } else {
-            IN_FLIGHT.fetch_sub(1, Ordering::SeqCst);
-        }
-    }
-}
-
-impl Drop for AsyncFactorizer {
-    fn drop(&mut self) {
-        lock(&WAITING).retain(|&w| w != self.id);
-        self.tx = None;
-        // Drain a finished job so the worker is not stuck on a full channel.
-        while self.rx.try_recv().is_ok() {}
-        if let Some(h) = self.handle.take() {
-            // The worker finishes its current factorization, fails to send or sees the
-            // closed job channel, and exits.
-            let rx = self.rx.clone();
-            let drain = std::thread::spawn(move || while rx.recv().is_ok() {});
-            let _ = h.join();
-            let _ = drain.join();
-        }
-    }
 }
 
 /// `LDLᵀ` factor in use plus the rotations it was made with.
@@ -428,6 +195,8 @@ pub struct PreconditionerState {
     tmp2: Vec<Vec3>,
     alt: Vec<Vec3>,
     prefetch: ColumnPrefetch,
+    /// The last error of a background factorization (see [`Self::last_error`]).
+    last_error: Option<SoftTissueError>,
     /// Factor version the warp was last tried on, and whether it was kept.
     warp_choice: Option<(u64, bool)>,
     stats: PreconditionerStats,
@@ -465,8 +234,15 @@ impl PreconditionerState {
             alt: vec![Vec3::zeros(); n],
             prefetch: ColumnPrefetch::default(),
             warp_choice: None,
+            last_error: None,
             stats: PreconditionerStats::default(),
         })
+    }
+
+    /// The last error a background factorization reported (a failed or
+    /// panicked job; counted in [`PreconditionerStats::failures`]), if any.
+    pub fn last_error(&self) -> Option<&SoftTissueError> {
+        self.last_error.as_ref()
     }
 
     /// The node-column hand-over with the contact compliance (see
@@ -602,7 +378,13 @@ impl PreconditionerState {
                             }
                             self.stats.refreshes += 1;
                         }
-                        Err(_) => self.stats.failures += 1,
+                        Err(e) => {
+                            self.stats.failures += 1;
+                            if matches!(e, SoftTissueError::WorkerPanic(_)) {
+                                self.stats.worker_panics += 1;
+                            }
+                            self.last_error = Some(e);
+                        }
                     }
                     if let Some(c) = columns {
                         self.prefetch.keep_spare(c);
@@ -611,7 +393,18 @@ impl PreconditionerState {
                     w.hint = done.hint;
                 }
                 if let Some(w) = &mut self.worker {
-                    w.submit(a, rotations, step, &mut self.prefetch);
+                    if w.is_alive() {
+                        w.submit(a, rotations, step, &mut self.prefetch);
+                    } else if !w.in_flight()
+                        && self
+                            .state
+                            .as_ref()
+                            .is_some_and(|s| step >= s.step + WORKER_FALLBACK_PERIOD)
+                    {
+                        // No worker thread: refresh here, as `Periodic` would.
+                        self.factorize_now(a, rotations, step)?;
+                        self.stats.fallback_refreshes += 1;
+                    }
                 }
             }
         }

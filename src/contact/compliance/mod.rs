@@ -103,6 +103,18 @@ pub struct BodyCompliance {
     scratch: Scratch,
 }
 
+/// Refreshes the step's factor and returns its view.
+fn prepare<'a>(
+    source: &'a mut factorized::FactorSource,
+    cache: &mut ColumnCache,
+    body: &'a DeformableBody,
+    mode: ComplianceMode,
+    reuse: u64,
+) -> Result<factorized::FactorView<'a>> {
+    source.refresh(body, mode, reuse, cache)?;
+    source.view(body, mode)
+}
+
 impl BodyCompliance {
     /// Fresh state.
     pub fn new() -> Self {
@@ -154,56 +166,58 @@ impl BodyCompliance {
                 diagonal::accumulate(body, &self.scratch.groups, h2, entries, w, m)
             }
             ComplianceMode::RestPrecomputed => self.rest.accumulate(body, h2, entries, w, m),
-            ComplianceMode::Factorized | ComplianceMode::Exact | ComplianceMode::DenseRows => {
-                self.source
-                    .refresh(body, mode, self.reuse_steps, &mut self.cache)?;
-                let view = self.source.view(body, mode)?;
+            ComplianceMode::DenseRows => {
+                let view = prepare(
+                    &mut self.source,
+                    &mut self.cache,
+                    body,
+                    mode,
+                    self.reuse_steps,
+                )?;
                 view.fill_j(entries);
-                match mode {
-                    ComplianceMode::DenseRows => {
-                        dense_rows::accumulate(
-                            &mut self.scratch,
-                            &mut self.cache,
-                            view.factor,
-                            h2,
-                            entries,
-                            w,
-                            m,
-                        );
-                        Ok(())
-                    }
-                    _ => {
-                        if mode == ComplianceMode::Factorized
-                            && let (
-                                Some(backend),
-                                FactorKey::Preconditioner(_) | FactorKey::Snapshot(_),
-                            ) = (backend, view.key)
-                            && backend.accumulate(
-                                body.id(),
-                                view.factor,
-                                view.key,
-                                h,
-                                entries,
-                                w,
-                                m,
-                            )?
-                        {
-                            return Ok(());
-                        }
-                        group(entries, &mut self.scratch.groups);
-                        factorized::accumulate(
-                            &view,
-                            &mut self.cache,
-                            prefetch,
-                            &mut self.scratch,
-                            h2,
-                            entries,
-                            w,
-                            m,
-                        );
-                        Ok(())
-                    }
+                dense_rows::accumulate(
+                    &mut self.scratch,
+                    &mut self.cache,
+                    view.factor,
+                    h2,
+                    entries,
+                    w,
+                    m,
+                );
+                Ok(())
+            }
+            ComplianceMode::Factorized | ComplianceMode::Exact => {
+                let view = prepare(
+                    &mut self.source,
+                    &mut self.cache,
+                    body,
+                    mode,
+                    self.reuse_steps,
+                )?;
+                view.fill_j(entries);
+                let shared = matches!(
+                    view.key,
+                    FactorKey::Preconditioner(_) | FactorKey::Snapshot(_)
+                );
+                if mode == ComplianceMode::Factorized
+                    && shared
+                    && let Some(backend) = backend
+                    && backend.accumulate(body.id(), view.factor, view.key, h, entries, w, m)?
+                {
+                    return Ok(());
                 }
+                group(entries, &mut self.scratch.groups);
+                factorized::accumulate(
+                    &view,
+                    &mut self.cache,
+                    prefetch,
+                    &mut self.scratch,
+                    h2,
+                    entries,
+                    w,
+                    m,
+                );
+                Ok(())
             }
         }
     }

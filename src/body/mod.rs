@@ -46,86 +46,22 @@
 //! replaced by a scaled identity, so `A` stays symmetric positive definite and
 //! its pattern (and symbolic factorization) never changes.
 
+mod settings;
+
 use std::time::Instant;
 
-use crate::error::{Result, SoftTissueError, check_positive};
+use crate::error::{Result, SoftTissueError, check_timestep, check_vector};
 use crate::fem::assembly::{BlockCsr, BlockPattern};
 use crate::fem::{Element, RotationMethod};
 use crate::material::TissueMaterial;
 use crate::math::{Mat3, Vec3, polar_rotation_fast, polar_rotation_near};
 use crate::mesh::{Surface, TetMesh};
-use crate::solver::cg::{self, CgReport, CgScratch, CgSettings};
+use crate::solver::PreconditionerState;
+use crate::solver::cg::{self, CgReport, CgScratch};
 use crate::solver::columns::ColumnPrefetch;
-use crate::solver::{PreconditionerKind, PreconditionerState, PreconditionerStats};
+use settings::validate_settings;
+pub use settings::{BodySettings, NodeConstraint, StepReport, StepTimings};
 use std::sync::Arc;
-
-/// Per-body solver settings.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct BodySettings {
-    /// Preconditioner of the conjugate gradient.
-    pub preconditioner: PreconditionerKind,
-    /// Element rotation extraction.
-    pub rotation: RotationMethod,
-    /// Conjugate-gradient stopping rule.
-    pub cg: CgSettings,
-    /// Gravity acceleration, if any.
-    pub gravity: Option<Vec3>,
-    /// Apply the material's Rayleigh damping (no damping term is assembled when
-    /// false or when both coefficients are zero).
-    pub damping: bool,
-}
-
-impl Default for BodySettings {
-    fn default() -> Self {
-        Self {
-            preconditioner: PreconditionerKind::Async,
-            rotation: RotationMethod::Polar,
-            cg: CgSettings::default(),
-            gravity: None,
-            damping: true,
-        }
-    }
-}
-
-/// Boundary condition of a node.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
-pub enum NodeConstraint {
-    /// Moves freely.
-    #[default]
-    Free,
-    /// Held in place.
-    Fixed,
-    /// Moved to a target position each step.
-    Driven,
-}
-
-/// Wall-clock seconds spent in each phase of the last step.
-#[derive(Debug, Clone, Copy, PartialEq, Default)]
-pub struct StepTimings {
-    /// Rotations, forces and matrix assembly.
-    pub assemble: f64,
-    /// Preconditioner update on the stepping thread (factorization when blocking).
-    pub factorize: f64,
-    /// Preconditioner application inside CG.
-    pub precond_apply: f64,
-    /// Whole conjugate gradient, application included.
-    pub cg_total: f64,
-}
-
-/// What the last step did.
-#[derive(Debug, Clone, Copy, PartialEq, Default)]
-pub struct StepReport {
-    /// Conjugate-gradient outcome.
-    pub cg: CgReport,
-    /// Preconditioner counters (factor age, refresh count).
-    pub preconditioner: PreconditionerStats,
-    /// Phase timings.
-    pub timings: StepTimings,
-    /// Whether damping terms were assembled.
-    pub damping: bool,
-    /// Whether gravity was applied.
-    pub gravity: bool,
-}
 
 /// A deformable tetrahedral body (see the module docs).
 #[derive(Debug)]
@@ -139,6 +75,8 @@ pub struct DeformableBody {
     mass: Vec<f64>,
     x: Vec<Vec3>,
     x_start: Vec<Vec3>,
+    /// State saved by [`Self::checkpoint`].
+    saved: (Vec<Vec3>, Vec<Vec3>),
     v: Vec<Vec3>,
     accel: Vec<Vec3>,
     prescribed: Vec<Vec3>,
@@ -197,6 +135,7 @@ impl DeformableBody {
         Ok(Self {
             id: NEXT_ID.fetch_add(1, std::sync::atomic::Ordering::Relaxed),
             x_start: x.clone(),
+            saved: (x.clone(), vec![Vec3::zeros(); n]),
             surface,
             young,
             elements,
@@ -391,9 +330,7 @@ impl DeformableBody {
     /// Sets a constant external force on `node` (newtons).
     pub fn set_external_force(&mut self, node: usize, force: Vec3) -> Result<()> {
         self.check_node(node)?;
-        if !force.iter().all(|c| c.is_finite()) {
-            return Err(SoftTissueError::NonFinite("external force"));
-        }
+        check_vector("external force", &force)?;
         self.external[node] = force;
         self.has_external = self.external.iter().any(|f| *f != Vec3::zeros());
         Ok(())
@@ -423,6 +360,20 @@ impl DeformableBody {
         }
         self.settings = settings;
         Ok(())
+    }
+
+    /// Saves positions and velocities, for [`Self::restore_checkpoint`] (no
+    /// allocation: the buffers are kept).
+    pub fn checkpoint(&mut self) {
+        self.saved.0.copy_from_slice(&self.x);
+        self.saved.1.copy_from_slice(&self.v);
+    }
+
+    /// Returns to the state of the last [`Self::checkpoint`] (the body's
+    /// initial state if none was taken), for a step that failed part way.
+    pub fn restore_checkpoint(&mut self) {
+        self.x.copy_from_slice(&self.saved.0);
+        self.v.copy_from_slice(&self.saved.1);
     }
 
     /// Overwrites positions and velocities (for example to start deformed).
@@ -490,7 +441,7 @@ impl DeformableBody {
 
     /// Phase 1: element rotations, forces and the system `A a = b`, in place.
     pub fn assemble(&mut self, h: f64) -> Result<()> {
-        check_positive("h", h)?;
+        check_timestep(h)?;
         let t0 = Instant::now();
         if !self
             .x
@@ -628,8 +579,13 @@ impl DeformableBody {
                 reason: "assemble must run before solve_free_motion",
             });
         }
-        if !self.rhs.iter().all(|b| b.iter().all(|c| c.is_finite())) {
-            return Err(SoftTissueError::NonFinite("right-hand side"));
+        // Finite components are not enough: CG measures `|b|²`, and if that
+        // overflows it would stop at once and drop the force.
+        let b2: f64 = self.rhs.iter().map(|b| b.norm_squared()).sum();
+        if !b2.is_finite() {
+            return Err(SoftTissueError::NonFinite(
+                "right-hand side (forces too large: |b|² overflows)",
+            ));
         }
         let t0 = Instant::now();
         if !self.settings.cg.warm_start {
@@ -699,21 +655,4 @@ impl DeformableBody {
             }
         }
     }
-}
-
-fn validate_settings(s: &BodySettings) -> Result<()> {
-    check_positive("cg.tolerance", s.cg.tolerance)?;
-    if s.cg.max_iterations == 0 {
-        return Err(SoftTissueError::InvalidParameter {
-            name: "cg.max_iterations",
-            value: 0.0,
-            reason: "must be ≥ 1",
-        });
-    }
-    if let Some(g) = s.gravity
-        && !g.iter().all(|c| c.is_finite())
-    {
-        return Err(SoftTissueError::NonFinite("gravity"));
-    }
-    Ok(())
 }

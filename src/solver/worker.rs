@@ -1,0 +1,297 @@
+//! The background `LDLᵀ` worker of the `Async` preconditioner (see the
+//! module docs of [`super`], "Asynchronous refresh").
+
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
+use std::thread::JoinHandle;
+use std::time::Instant;
+
+use crossbeam::channel::{Receiver, Sender, TryRecvError, bounded};
+
+use super::columns::{ColumnCache, ColumnPrefetch, FactorKey};
+use super::ldlt::{LdltFactor, LdltSymbolic};
+use crate::error::{Result, SoftTissueError};
+use crate::fem::assembly::BlockCsr;
+use crate::math::Mat3;
+use std::panic::{AssertUnwindSafe, catch_unwind};
+
+pub(super) struct Job {
+    pub(super) values: Vec<Mat3>,
+    pub(super) rotations: Vec<Mat3>,
+    pub(super) factor: LdltFactor,
+    pub(super) step: u64,
+    /// Nodes whose columns to precompute with the new factor (may be empty).
+    pub(super) hint: Vec<u32>,
+    pub(super) columns: Option<ColumnCache>,
+}
+
+pub(super) struct Done {
+    pub(super) values: Vec<Mat3>,
+    pub(super) rotations: Vec<Mat3>,
+    pub(super) factor: LdltFactor,
+    pub(super) step: u64,
+    pub(super) result: Result<()>,
+    pub(super) seconds: f64,
+    pub(super) hint: Vec<u32>,
+    /// The precomputed columns (when the job had a hint and the factorization succeeded).
+    pub(super) columns: Option<ColumnCache>,
+}
+
+/// Locks `m`; a panic elsewhere while it was held leaves the data usable.
+fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+/// Factorizations running in background workers, all bodies together.
+static IN_FLIGHT: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
+
+/// Factorizers waiting for a background slot, oldest first.
+static WAITING: std::sync::Mutex<std::collections::VecDeque<u64>> =
+    std::sync::Mutex::new(std::collections::VecDeque::new());
+/// Identity of each [`AsyncFactorizer`] in [`WAITING`].
+static NEXT_ID: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+
+/// How many background factorizations may run at once: one core is left to the
+/// stepping thread (at least one worker). Asked of the OS once.
+fn max_in_flight() -> usize {
+    static LIMIT: std::sync::OnceLock<usize> = std::sync::OnceLock::new();
+    *LIMIT.get_or_init(|| {
+        std::thread::available_parallelism()
+            .map(|n| n.get().saturating_sub(1))
+            .unwrap_or(1)
+            .max(1)
+    })
+}
+
+/// Background `LDLᵀ` worker (see the module docs).
+pub struct AsyncFactorizer {
+    id: u64,
+    tx: Option<Sender<Job>>,
+    rx: Receiver<Done>,
+    handle: Option<JoinHandle<()>>,
+    alive: Arc<AtomicBool>,
+    /// Test hook: the next job panics.
+    fail: Arc<AtomicBool>,
+    in_flight: bool,
+    pub(super) spare: Option<(Vec<Mat3>, Vec<Mat3>, LdltFactor)>,
+    pub(super) hint: Vec<u32>,
+}
+
+impl std::fmt::Debug for AsyncFactorizer {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("AsyncFactorizer")
+            .field("in_flight", &self.in_flight)
+            .finish()
+    }
+}
+
+impl AsyncFactorizer {
+    /// Starts a worker for matrices over `pattern` with analysis `symbolic`.
+    pub fn new(a: &BlockCsr, symbolic: &Arc<LdltSymbolic>) -> Self {
+        let (tx, job_rx) = bounded::<Job>(1);
+        let (done_tx, rx) = bounded::<Done>(1);
+        let alive = Arc::new(AtomicBool::new(true));
+        let pattern = Arc::clone(&a.pattern);
+        let sym = Arc::clone(symbolic);
+        let alive_w = Arc::clone(&alive);
+        let fail = Arc::new(AtomicBool::new(false));
+        let fail_w = Arc::clone(&fail);
+        let handle = std::thread::Builder::new()
+            .name("soft-tissue-ldlt".into())
+            .spawn(move || {
+                let mut work = Vec::with_capacity(sym.n);
+                let mut mat = BlockCsr {
+                    pattern,
+                    values: Vec::new(),
+                };
+                while let Ok(mut job) = job_rx.recv() {
+                    let t0 = Instant::now();
+                    mat.values = std::mem::take(&mut job.values);
+                    // A panic in the factorization is caught: the slot is
+                    // released below and the job comes back as an error, so the
+                    // body keeps its factor and the other bodies keep their turns.
+                    let outcome = catch_unwind(AssertUnwindSafe(|| {
+                        if fail_w.swap(false, Ordering::SeqCst) {
+                            panic!("injected by AsyncFactorizer::inject_panic");
+                        }
+                        let result = sym.factorize(&mat, &mut job.factor, &mut work);
+                        // The compliance's node columns of the new factor, here
+                        // rather than on the stepping thread.
+                        // (A job carries a cache only when it has a hint.)
+                        if let (Ok(()), Some(c)) = (&result, job.columns.as_mut()) {
+                            c.precompute(&job.factor, FactorKey::Preconditioner(0), &job.hint);
+                        }
+                        result
+                    }));
+                    let result = outcome.unwrap_or_else(|p| {
+                        let msg = p
+                            .downcast_ref::<&str>()
+                            .map(|s| s.to_string())
+                            .or_else(|| p.downcast_ref::<String>().cloned())
+                            .unwrap_or_else(|| "unknown panic".into());
+                        work.clear();
+                        Err(SoftTissueError::WorkerPanic(msg))
+                    });
+                    IN_FLIGHT.fetch_sub(1, Ordering::SeqCst);
+                    let done = Done {
+                        values: std::mem::take(&mut mat.values),
+                        rotations: job.rotations,
+                        factor: job.factor,
+                        step: job.step,
+                        result,
+                        seconds: t0.elapsed().as_secs_f64(),
+                        hint: job.hint,
+                        columns: job.columns,
+                    };
+                    if done_tx.send(done).is_err() {
+                        break;
+                    }
+                }
+                alive_w.store(false, Ordering::SeqCst);
+            })
+            .ok();
+        if handle.is_none() {
+            // No thread: the preconditioner refreshes on the stepping thread.
+            alive.store(false, Ordering::SeqCst);
+        }
+        let spare = Some((
+            a.values.clone(),
+            vec![Mat3::identity(); a.n()],
+            symbolic.alloc_factor(),
+        ));
+        Self {
+            id: NEXT_ID.fetch_add(1, Ordering::Relaxed),
+            tx: Some(tx),
+            rx,
+            handle,
+            alive,
+            fail,
+            in_flight: false,
+            spare,
+            hint: Vec::new(),
+        }
+    }
+
+    /// Whether the worker thread runs (false if it could not be started or
+    /// has exited).
+    pub fn is_alive(&self) -> bool {
+        self.alive.load(Ordering::SeqCst)
+    }
+
+    /// Test hook: makes the next background factorization panic, to exercise
+    /// the recovery (the slot is released, the error reported, the body keeps
+    /// its factor).
+    #[doc(hidden)]
+    pub fn inject_panic(&self) {
+        self.fail.store(true, Ordering::SeqCst);
+    }
+
+    /// A flag that turns false once the worker thread has exited.
+    pub fn alive_flag(&self) -> Arc<AtomicBool> {
+        Arc::clone(&self.alive)
+    }
+
+    /// Whether a factorization is running.
+    pub fn in_flight(&self) -> bool {
+        self.in_flight
+    }
+
+    pub(super) fn try_take(&mut self, block: bool) -> Option<Done> {
+        if !self.in_flight {
+            return None;
+        }
+        let got = if block {
+            self.rx.recv().ok()
+        } else {
+            match self.rx.try_recv() {
+                Ok(d) => Some(d),
+                Err(TryRecvError::Empty) => None,
+                Err(TryRecvError::Disconnected) => {
+                    self.in_flight = false;
+                    None
+                }
+            }
+        };
+        if got.is_some() {
+            self.in_flight = false;
+        }
+        got
+    }
+
+    pub(super) fn submit(
+        &mut self,
+        a: &BlockCsr,
+        rotations: &[Mat3],
+        step: u64,
+        prefetch: &mut ColumnPrefetch,
+    ) {
+        if self.in_flight {
+            return;
+        }
+        // Share the machine: with several bodies, at most `cores − 1` factorizations run
+        // at once; the others queue and hand over their matrix when their turn comes.
+        let limit = max_in_flight();
+        {
+            let mut waiting = lock(&WAITING);
+            let first = waiting.front().is_none_or(|&w| w == self.id);
+            let got = first
+                && IN_FLIGHT
+                    .fetch_update(Ordering::SeqCst, Ordering::SeqCst, |n| {
+                        (n < limit).then_some(n + 1)
+                    })
+                    .is_ok();
+            if !got {
+                if !waiting.contains(&self.id) {
+                    waiting.push_back(self.id);
+                }
+                return;
+            }
+            if waiting.front() == Some(&self.id) {
+                waiting.pop_front();
+            }
+        }
+        let (Some(tx), Some((mut values, mut rots, factor))) = (&self.tx, self.spare.take()) else {
+            return;
+        };
+        values.copy_from_slice(&a.values);
+        rots.copy_from_slice(rotations);
+        let mut hint = std::mem::take(&mut self.hint);
+        hint.clear();
+        hint.extend_from_slice(&prefetch.hint);
+        let columns = if hint.is_empty() {
+            None
+        } else {
+            Some(prefetch.spare.take().unwrap_or_default())
+        };
+        let job = Job {
+            values,
+            rotations: rots,
+            factor,
+            step,
+            hint,
+            columns,
+        };
+        if tx.send(job).is_ok() {
+            self.in_flight = true;
+        } else {
+            IN_FLIGHT.fetch_sub(1, Ordering::SeqCst);
+        }
+    }
+}
+
+impl Drop for AsyncFactorizer {
+    fn drop(&mut self) {
+        lock(&WAITING).retain(|&w| w != self.id);
+        self.tx = None;
+        // Drain a finished job so the worker is not stuck on a full channel.
+        while self.rx.try_recv().is_ok() {}
+        if let Some(h) = self.handle.take() {
+            // The worker finishes its current factorization, fails to send or sees the
+            // closed job channel, and exits.
+            let rx = self.rx.clone();
+            let drain = std::thread::spawn(move || while rx.recv().is_ok() {});
+            let _ = h.join();
+            let _ = drain.join();
+        }
+    }
+}

@@ -1,0 +1,548 @@
+//! The hard-case stability suite: stiffness contrast up to 10⁶ in a small,
+//! free stiff core, a graded mesh (element sizes 100:1), time steps from
+//! 1/240 to 0.04 s, ν = 0.49, a crushed start with inverted elements, a fast
+//! tool impact, two bodies squeezed together, and the stiff-core lens pressed
+//! by a tool with friction. Default (`Async`) preconditioner unless a case
+//! says otherwise.
+//!
+//! Every step of every case is checked ([`Monitor::check`]):
+//! - no NaN or infinity in positions and velocities;
+//! - the conjugate gradient converged (after a rescue, if one was needed);
+//! - in a step without contact, the total energy (kinetic + elastic +
+//!   gravity) does not rise from the step before by more than a stated
+//!   allowance, `ALLOWANCE × E_ref`, with `E_ref` the case's energy scale and
+//!   `ALLOWANCE` = 1e-3 (the CG stops at a relative residual of 1e-6; the
+//!   allowance covers that error and the first-order linearization of the
+//!   co-rotational step, not a tuned margin);
+//! - no surface vertex is deeper than the penetration tolerance inside a tool
+//!   or the other body, by a detection of its own at the step's end.
+//!
+//! In steps with contact the energy is recorded, not asserted, and each case
+//! prints the largest rise beyond the work of the contact forces (`Σ f·Δx`
+//! over the step's nodes, all passes; end-of-step forces of the implicit
+//! step). Measured: at most 4e-4 `E_ref` when the lens lands at h = 1/240,
+//! 2e-3 when pressed slowly (ν = 0.49), 4e-2 for the 0.5 m/s impact, none for
+//! the squeezed pair — but 10² to 10⁶ `E_ref` when the stiff-core lens lands
+//! from a whole-gap fall in one step of 1/60 s or more
+//! ([`stiff_core_dropped_with_large_steps`], ignored: an open finding). The
+//! position-level correction (`Δv = Δx / h`) of a deep first-step
+//! penetration is the suspect.
+//!
+//! Run it in release: `cargo test --release --test stability` (a few
+//! seconds; in debug about a minute).
+
+use bevy_soft_tissue::contact::{NO_TOOLS, PassKind};
+use bevy_soft_tissue::core_prelude::*;
+use bevy_soft_tissue::mesh::generate::LENS_RADII;
+use nalgebra::{Isometry3, Translation3, UnitQuaternion};
+
+/// Energy rise allowed per step beyond the tools' work, relative to the case's energy scale.
+const ALLOWANCE: f64 = 1e-3;
+
+fn at(p: Vec3) -> Pose {
+    Isometry3::from_parts(Translation3::from(p), UnitQuaternion::identity())
+}
+
+/// Checks every step of a scene (see the module docs).
+struct Monitor {
+    name: String,
+    gravity: Vec3,
+    e_ref: f64,
+    energy: f64,
+    checker: ContactSolver,
+    tolerance: f64,
+    steps: usize,
+    worst_rise: f64,
+    /// The largest rise in a step with contacts, relative to `e_ref`.
+    contact_rise: f64,
+}
+
+fn total_energy(scene: &Scene, g: Vec3) -> f64 {
+    scene
+        .bodies
+        .iter()
+        .map(|b| {
+            let grav: f64 = b
+                .positions()
+                .iter()
+                .zip(b.mass())
+                .map(|(x, m)| -m * g.dot(x))
+                .sum();
+            b.kinetic_energy() + b.elastic_energy() + grav
+        })
+        .sum()
+}
+
+impl Monitor {
+    fn new(name: impl Into<String>, scene: &Scene, gravity: Vec3, e_ref: f64) -> Self {
+        let settings = *scene.contact.settings();
+        Self {
+            name: name.into(),
+            gravity,
+            e_ref,
+            energy: total_energy(scene, gravity),
+            checker: ContactSolver::new(settings).unwrap(),
+            tolerance: settings.penetration_tolerance,
+            steps: 0,
+            worst_rise: f64::NEG_INFINITY,
+            contact_rise: f64::NEG_INFINITY,
+        }
+    }
+
+    /// Prints the largest energy rises, relative to `E_ref`.
+    fn report(&self) {
+        let show = |r: f64| {
+            if r.is_finite() {
+                format!("{r:.2e} E_ref")
+            } else {
+                "none".into()
+            }
+        };
+        println!(
+            "{}: {} steps, largest energy rise without contact {} (asserted), with contact {} (recorded)",
+            self.name,
+            self.steps,
+            show(self.worst_rise),
+            show(self.contact_rise)
+        );
+    }
+
+    /// Steps the scene by `h` and checks the step.
+    fn step(&mut self, scene: &mut Scene, h: f64) {
+        let s = self.steps;
+        let name = &self.name;
+        scene
+            .step(h)
+            .unwrap_or_else(|e| panic!("{name}, step {s}: {e}"));
+        self.steps += 1;
+        for (bi, b) in scene.bodies.iter().enumerate() {
+            let finite = b
+                .positions()
+                .iter()
+                .chain(b.velocities())
+                .all(|p| p.iter().all(|c| c.is_finite()));
+            assert!(finite, "{name}, step {s}: body {bi} has a non-finite state");
+            let r = b.report();
+            assert!(
+                r.cg.converged,
+                "{name}, step {s}: body {bi}'s CG did not converge ({:?}, {} rescues)",
+                r.cg, r.preconditioner.rescues
+            );
+        }
+        // The work of the external forces on the tissue this step: the
+        // contact forces (end-of-step forces of the implicit step, all passes)
+        // along each node's displacement. Gravity is in the energy itself.
+        let mut work = 0.0;
+        if scene.can_touch() {
+            for (bi, b) in scene.bodies.iter().enumerate() {
+                let f = scene.contact.contact_forces(bi);
+                for ((x, x0), f) in b.positions().iter().zip(b.start_positions()).zip(f) {
+                    work += f.dot(&(x - x0));
+                }
+            }
+        }
+        let e = total_energy(scene, self.gravity);
+        if std::env::var("STABILITY_DEBUG").is_ok() {
+            let b = &scene.bodies[0];
+            eprintln!(
+                "{name} {s}: E {e:.4e} K {:.4e} U {:.4e} work {work:.4e} reaction {:?} contacts {}",
+                b.kinetic_energy(),
+                b.elastic_energy(),
+                scene.tools.first().map(|t| t.reaction().0),
+                scene.contact.report().contacts
+            );
+        }
+        let rise = e - self.energy - work;
+        if scene.contact.report().contacts > 0 {
+            // Not asserted in contact (see the module docs): recorded.
+            self.contact_rise = self.contact_rise.max(rise / self.e_ref);
+        } else {
+            self.worst_rise = self.worst_rise.max(rise / self.e_ref);
+            assert!(
+                rise <= ALLOWANCE * self.e_ref,
+                "{name}, step {s}: energy rose by {rise:.3e} J (allowance {:.3e} J)",
+                ALLOWANCE * self.e_ref
+            );
+        }
+        self.energy = e;
+        if scene.can_touch() {
+            self.checker
+                .detect(&scene.bodies, &scene.tools, h, PassKind::First)
+                .unwrap();
+            let deepest = self
+                .checker
+                .contacts()
+                .iter()
+                .map(|c| -c.gap)
+                .fold(0.0, f64::max);
+            assert!(
+                deepest <= self.tolerance,
+                "{name}, step {s}: a vertex is {deepest:.3e} m deep (tolerance {:.1e})",
+                self.tolerance
+            );
+        }
+    }
+}
+
+/// A lens whose core (`core_radius` of the radii) is `factor`× stiffer, sharp edge.
+fn cored_lens(cells: usize, factor: f64, poisson: f64, settings: BodySettings) -> DeformableBody {
+    let mesh = generate::ellipsoid(LENS_RADII, cells).unwrap();
+    let material = TissueMaterial::new(1000.0, 3e3, poisson)
+        .with_damping(5.0, 0.0)
+        .with_stiffness(StiffnessField::Radial {
+            center: Vec3::zeros(),
+            radii: Vec3::from(LENS_RADII),
+            core_radius: 0.4,
+            factor,
+            transition: Transition::Sharp,
+        });
+    DeformableBody::new(mesh, material, settings).unwrap()
+}
+
+fn contact_settings() -> ContactSettings {
+    ContactSettings {
+        alarm_distance: 2e-4,
+        max_passes: 32,
+        ..Default::default()
+    }
+}
+
+/// A plate whose top is at `z`.
+fn plate(z: f64, mu: f64) -> RigidTool {
+    RigidTool::new(
+        ToolShape::Box {
+            half_extents: v3(0.02, 0.02, 0.002),
+        },
+        at(v3(0.0, 0.0, z - 0.002)),
+    )
+    .unwrap()
+    .with_friction(mu)
+    .unwrap()
+}
+
+fn gravity() -> Vec3 {
+    v3(0.0, 0.0, -9.81)
+}
+
+/// Energy scale of a body: its weight times its size, and its elastic energy
+/// at 10 % strain (whichever is larger).
+fn energy_scale(b: &DeformableBody) -> f64 {
+    let m: f64 = b.mass().iter().sum();
+    let size = b.mesh().max_edge_length() * 10.0;
+    let vol: f64 = b.elements().iter().map(|e| e.volume).sum();
+    let e_min = b
+        .element_young()
+        .iter()
+        .copied()
+        .fold(f64::INFINITY, f64::min);
+    (m * 9.81 * size).max(0.5 * e_min * 0.01 * vol)
+}
+
+/// Drops the stiff-core lens onto a plate for 0.6 s (see [`stiff_core_drop`]).
+fn stiff_core_drop(factor: f64, h: f64) {
+    let settings = BodySettings {
+        gravity: Some(gravity()),
+        ..Default::default()
+    };
+    let mut scene = Scene::new(contact_settings()).unwrap();
+    let lens = cored_lens(6, factor, 0.45, settings);
+    let e_ref = energy_scale(&lens);
+    scene.add_body(lens);
+    scene.add_tool(plate(-LENS_RADII[2] - 5e-4, 0.3));
+    let mut m = Monitor::new(
+        format!("contrast {factor:e}, h {h:.4}"),
+        &scene,
+        gravity(),
+        e_ref,
+    );
+    let steps = (0.6 / h) as usize;
+    for _ in 0..steps {
+        m.step(&mut scene, h);
+    }
+    // It landed and rests on the plate.
+    let low = scene.bodies[0]
+        .positions()
+        .iter()
+        .map(|p| p.z)
+        .fold(f64::INFINITY, f64::min);
+    assert!(
+        low < -LENS_RADII[2] - 4e-4,
+        "contrast {factor:e}, h {h}: did not fall ({low})"
+    );
+    m.report();
+}
+
+/// The stiff core (40 % of the radii) free inside the soft lens, dropped
+/// 0.5 mm onto a plate: contrast 10², 10⁴, 10⁶ at h = 1/240 s.
+#[test]
+fn stiff_core_in_soft_lens_dropped_on_a_plate() {
+    for factor in [1e2, 1e4, 1e6] {
+        stiff_core_drop(factor, 1.0 / 240.0);
+    }
+}
+
+/// The same drop with the 10⁶ core at h = 1/60, 0.02 and 0.04 s: the lens
+/// falls the whole gap within the first step and lands on the plate in one
+/// correction. Open: the energy then rises far beyond the contact forces'
+/// work (10² to 10⁶ `E_ref` in a step), and at h = 0.02 it goes on rising
+/// in the contact-free step after the landing. Positions stay finite, CG
+/// converges and no vertex stays inside the plate.
+#[test]
+#[ignore = "open finding: energy rises when the 10⁶ core lands in one large step (README, Stability)"]
+fn stiff_core_dropped_with_large_steps() {
+    for h in [1.0 / 60.0, 0.02, 0.04] {
+        for factor in [1e2, 1e4, 1e6] {
+            stiff_core_drop(factor, h);
+        }
+    }
+}
+
+/// A block graded 100:1 in element size along each axis (the smallest cell
+/// in one corner, the largest in the other), clamped at one face.
+#[test]
+fn graded_mesh_with_sizes_100_to_1() {
+    let n = 10;
+    let base = generate::box_mesh(Vec3::zeros(), v3(1.0, 1.0, 1.0), [n; 3]).unwrap();
+    let r: f64 = 100f64.powf(1.0 / (n as f64 - 1.0));
+    let grade = |u: f64| 0.02 * (r.powf(u * n as f64) - 1.0) / (r.powi(n as i32) - 1.0);
+    let pos: Vec<Vec3> = base
+        .positions()
+        .iter()
+        .map(|p| v3(grade(p.x), grade(p.y), grade(p.z)))
+        .collect();
+    let mesh = TetMesh::new(pos, base.tets().to_vec()).unwrap();
+    let ratio = mesh.max_edge_length() / mesh.min_edge_length();
+    assert!(ratio >= 100.0, "element size ratio {ratio}");
+    let settings = BodySettings {
+        gravity: Some(gravity()),
+        ..Default::default()
+    };
+    let material = TissueMaterial::new(1000.0, 2e4, 0.45).with_damping(2.0, 0.0);
+    let mut body = DeformableBody::new(mesh, material, settings).unwrap();
+    body.fix_where(|p| p.x < 1e-12);
+    let e_ref = energy_scale(&body);
+    let mut scene = Scene::new(contact_settings()).unwrap();
+    scene.add_body(body);
+    let mut m = Monitor::new("graded 100:1", &scene, gravity(), e_ref);
+    for _ in 0..90 {
+        m.step(&mut scene, 1.0 / 60.0);
+    }
+    m.report();
+}
+
+/// Nearly incompressible (ν = 0.49) lens with a stiff core, pressed by a
+/// sphere with friction onto a plate.
+#[test]
+fn nearly_incompressible_lens_pressed_with_friction() {
+    for poisson in [0.49, 0.45] {
+        let mut scene = Scene::new(contact_settings()).unwrap();
+        let lens = cored_lens(6, 5.0, poisson, BodySettings::default());
+        let e_ref = energy_scale(&lens);
+        scene.add_body(lens);
+        scene.add_tool(plate(-LENS_RADII[2], 0.5));
+        let r = 3e-3;
+        scene.add_tool(
+            RigidTool::new(
+                ToolShape::Sphere { radius: r },
+                at(v3(0.0, 0.0, LENS_RADII[2] + r + 1e-4)),
+            )
+            .unwrap()
+            .with_friction(0.5)
+            .unwrap(),
+        );
+        let mut m = Monitor::new(
+            format!("pressed, ν = {poisson}"),
+            &scene,
+            Vec3::zeros(),
+            e_ref,
+        );
+        let h = 1.0 / 60.0;
+        for s in 0..90 {
+            // Down 1.2 mm over 1 s (with a sideways drift for friction), then held.
+            let t = (s as f64 * h).min(1.0);
+            let p = v3(0.3e-3 * t, 0.0, LENS_RADII[2] + r + 1e-4 - 1.3e-3 * t);
+            scene.tools[1].set_pose(at(p)).unwrap();
+            m.step(&mut scene, h);
+        }
+        assert!(
+            scene.tools[1].reaction().0.z > 0.0,
+            "the lens pushes the sphere up"
+        );
+        m.report();
+    }
+}
+
+/// A block started crushed: flattened to 5 % of its height, with its top
+/// layer pushed through the bottom (inverted elements). It recovers.
+#[test]
+fn crushed_start_with_inverted_elements_recovers() {
+    let mesh = generate::box_mesh(Vec3::zeros(), v3(0.01, 0.01, 0.01), [4, 4, 4]).unwrap();
+    let material = TissueMaterial::new(1000.0, 1e4, 0.4).with_damping(5.0, 0.0);
+    let mut body = DeformableBody::new(mesh.clone(), material, BodySettings::default()).unwrap();
+    let x: Vec<Vec3> = mesh
+        .positions()
+        .iter()
+        .map(|p| {
+            let z = if p.z > 0.0099 { -0.0002 } else { 0.05 * p.z };
+            v3(p.x, p.y, z)
+        })
+        .collect();
+    body.set_state(&x, &vec![Vec3::zeros(); x.len()]).unwrap();
+    let inverted = body
+        .elements()
+        .iter()
+        .filter(|e| {
+            let xe = e.nodes.map(|n| x[n]);
+            e.deformation_gradient(&xe).determinant() < 0.0
+        })
+        .count();
+    assert!(inverted > 0, "the crushed start has no inverted element");
+    let e_ref = body.elastic_energy();
+    let mut scene = Scene::new(contact_settings()).unwrap();
+    scene.add_body(body);
+    let mut m = Monitor::new("crushed start", &scene, Vec3::zeros(), e_ref);
+    for _ in 0..240 {
+        m.step(&mut scene, 1.0 / 60.0);
+    }
+    let b = &scene.bodies[0];
+    let height = b
+        .positions()
+        .iter()
+        .map(|p| p.z)
+        .fold(f64::NEG_INFINITY, f64::max)
+        - b.positions()
+            .iter()
+            .map(|p| p.z)
+            .fold(f64::INFINITY, f64::min);
+    assert!(height > 0.008, "did not recover its height: {height}");
+    assert!(
+        b.elastic_energy() < 0.01 * e_ref,
+        "energy left {:.3e} of {e_ref:.3e}",
+        b.elastic_energy()
+    );
+    m.report();
+}
+
+/// A sphere hits a soft block at 0.5 m/s and goes on into it for 3 mm.
+#[test]
+fn fast_tool_impact() {
+    let mesh = generate::box_mesh(v3(-0.01, -0.01, 0.0), v3(0.01, 0.01, 0.01), [6, 6, 3]).unwrap();
+    let material = TissueMaterial::new(1000.0, 2e4, 0.45).with_damping(2.0, 0.0);
+    let mut body = DeformableBody::new(mesh, material, BodySettings::default()).unwrap();
+    body.fix_where(|p| p.z < 1e-9);
+    let e_ref = energy_scale(&body);
+    let mut scene = Scene::new(contact_settings()).unwrap();
+    scene.add_body(body);
+    let r = 3e-3;
+    let z0 = 0.01 + r + 1e-3;
+    scene.add_tool(RigidTool::new(ToolShape::Sphere { radius: r }, at(v3(0.0, 0.0, z0))).unwrap());
+    let mut m = Monitor::new("impact 0.5 m/s", &scene, Vec3::zeros(), e_ref);
+    let h = 1.0 / 240.0;
+    let v = 0.5;
+    for s in 1..=60 {
+        let z = (z0 - v * s as f64 * h).max(z0 - 4e-3);
+        scene.tools[0].set_pose(at(v3(0.0, 0.0, z))).unwrap();
+        m.step(&mut scene, h);
+    }
+    assert!(scene.tools[0].reaction().0.z > 0.0);
+    m.report();
+}
+
+/// Two soft blocks squeezed together between two rough plates closing at
+/// 10 mm/s (the blocks touch each other without friction).
+#[test]
+fn two_bodies_squeezed_together() {
+    let block = |z0: f64| {
+        let mesh = generate::box_mesh(
+            v3(-0.004, -0.004, z0),
+            v3(0.004, 0.004, z0 + 0.004),
+            [3, 3, 3],
+        )
+        .unwrap();
+        DeformableBody::new(
+            mesh,
+            TissueMaterial::new(1000.0, 1e4, 0.45).with_damping(5.0, 0.0),
+            BodySettings::default(),
+        )
+        .unwrap()
+    };
+    let mut scene = Scene::new(contact_settings()).unwrap();
+    let (a, b) = (block(0.0), block(0.0041));
+    let e_ref = energy_scale(&a);
+    scene.add_body(a);
+    scene.add_body(b);
+    let box_tool = |z: f64| {
+        RigidTool::new(
+            ToolShape::Box {
+                half_extents: v3(0.01, 0.01, 0.002),
+            },
+            at(v3(0.0, 0.0, z)),
+        )
+        .unwrap()
+        .with_friction(0.8)
+        .unwrap()
+    };
+    scene.add_tool(box_tool(-0.002 - 1e-4));
+    scene.add_tool(box_tool(0.0081 + 0.002 + 1e-4));
+    let mut m = Monitor::new("two bodies squeezed", &scene, Vec3::zeros(), e_ref);
+    let h = 1.0 / 60.0;
+    for s in 1..=60 {
+        let d = (0.01 * s as f64 * h).min(2e-3);
+        scene.tools[1]
+            .set_pose(at(v3(0.0, 0.0, 0.0081 + 0.002 + 1e-4 - d)))
+            .unwrap();
+        m.step(&mut scene, h);
+    }
+    // The squeeze reaches the lower plate through both blocks.
+    let (lo, hi) = (scene.tools[0].reaction().0, scene.tools[1].reaction().0);
+    assert!(
+        lo.z < 0.0 && hi.z > 0.0,
+        "lower plate {lo:?}, upper plate {hi:?}"
+    );
+    // No vertex of one block inside the other, checked by detection alone.
+    let mut probe = ContactSolver::new(contact_settings()).unwrap();
+    probe
+        .detect(&scene.bodies, &NO_TOOLS, h, PassKind::First)
+        .unwrap();
+    let deepest = probe.contacts().iter().map(|c| -c.gap).fold(0.0, f64::max);
+    assert!(
+        deepest <= contact_settings().penetration_tolerance,
+        "{deepest}"
+    );
+    m.report();
+}
+
+/// A rigid rotation of the rest shape, through the stepping path (the step's
+/// own rotations and right-hand side): no elastic force, so the body stays
+/// where it is, at rest.
+#[test]
+fn rigid_rotation_through_the_step_moves_nothing() {
+    for kind in [PreconditionerKind::Exact, PreconditionerKind::Async] {
+        let mesh = generate::ellipsoid(LENS_RADII, 6).unwrap();
+        let mut body = DeformableBody::new(
+            mesh.clone(),
+            TissueMaterial::new(1000.0, 3e3, 0.45),
+            BodySettings {
+                preconditioner: kind,
+                ..Default::default()
+            },
+        )
+        .unwrap();
+        let rot = nalgebra::Rotation3::from_euler_angles(0.7, -1.1, 2.3);
+        let x: Vec<Vec3> = mesh.positions().iter().map(|p| rot * p).collect();
+        body.set_state(&x, &vec![Vec3::zeros(); x.len()]).unwrap();
+        for s in 0..5 {
+            body.step(1.0 / 60.0).unwrap();
+            let moved = body
+                .positions()
+                .iter()
+                .zip(&x)
+                .map(|(p, q)| (p - q).norm())
+                .fold(0.0, f64::max);
+            assert!(
+                moved <= 1e-12 * LENS_RADII[0],
+                "{kind:?}, step {s}: a rigid rotation moved a node by {moved:e} m"
+            );
+        }
+    }
+}
