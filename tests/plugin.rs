@@ -56,16 +56,9 @@ fn cube(size: f64, cells: usize, z0: f64) -> SoftBody {
     .unwrap()
 }
 
-#[test]
-fn body_falls_onto_fixed_tool_and_stays_above_it() {
-    let mut app = app(SoftTissueConfig {
-        timestep: H,
-        gravity: Some(bevy::math::DVec3::new(0.0, 0.0, -9.81)),
-        ..Default::default()
-    });
-    let body = app.world_mut().spawn(cube(4e-3, 3, 1e-3)).id();
-    let tool = app
-        .world_mut()
+/// A rigid plate (μ = 0.3) whose top is at z = 0.
+fn spawn_plate(app: &mut App) -> Entity {
+    app.world_mut()
         .spawn((
             Tool::new(
                 ToolShape::Box {
@@ -76,7 +69,18 @@ fn body_falls_onto_fixed_tool_and_stays_above_it() {
             .unwrap(),
             Transform::from_xyz(0.0, 0.0, -0.005),
         ))
-        .id();
+        .id()
+}
+
+#[test]
+fn body_falls_onto_fixed_tool_and_stays_above_it() {
+    let mut app = app(SoftTissueConfig {
+        timestep: H,
+        gravity: Some(bevy::math::DVec3::new(0.0, 0.0, -9.81)),
+        ..Default::default()
+    });
+    let body = app.world_mut().spawn(cube(4e-3, 3, 1e-3)).id();
+    let tool = spawn_plate(&mut app);
     steps(&mut app, 80);
     let w = app.world();
     let b = w.get::<SoftBody>(body).unwrap();
@@ -416,16 +420,7 @@ fn contact_plugin_can_be_disabled() {
         H,
     )));
     let body = app.world_mut().spawn(cube(4e-3, 3, 1e-3)).id();
-    app.world_mut().spawn((
-        Tool::new(
-            ToolShape::Box {
-                half_extents: v3(0.05, 0.05, 0.005),
-            },
-            0.3,
-        )
-        .unwrap(),
-        Transform::from_xyz(0.0, 0.0, -0.005),
-    ));
+    spawn_plate(&mut app);
     steps(&mut app, 80);
     let w = app.world();
     let min_z = w

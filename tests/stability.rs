@@ -546,3 +546,23 @@ fn rigid_rotation_through_the_step_moves_nothing() {
         }
     }
 }
+
+#[path = "../examples/common/mod.rs"]
+mod common;
+
+/// A short soak: the coarse cataract scene, the vectis in and out for 1500
+/// steps (25 s, one and a half cycles), default solver. Nothing fails: no
+/// error, no NaN, every CG converged, every step's end within the
+/// penetration tolerance (`examples/soak.rs` runs the long one).
+#[test]
+fn short_soak_of_the_cataract_scene() {
+    let s = common::soak::run_soak(
+        &bevy_soft_tissue::scenes::cataract::CataractParams::coarse(),
+        1500,
+        |_| {},
+    )
+    .unwrap();
+    println!("{s:?}");
+    assert_eq!(s.steps, 1500);
+    assert!(!s.failed(), "{s:?}");
+}

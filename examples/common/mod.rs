@@ -5,3 +5,4 @@
 pub mod bench;
 #[cfg(feature = "bevy")]
 pub mod headless;
+pub mod soak;

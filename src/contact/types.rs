@@ -50,7 +50,7 @@ pub struct Contact {
     /// Unit tangents completing the frame.
     pub tangents: [Vec3; 2],
     /// Gap where the contact was detected, negative when penetrating: at the
-    /// free motion, or in a predicted first pass ([`ContactSettings::predict`])
+    /// free motion, or in a predicted first pass ([`super::ContactSettings::predict`])
     /// at the predicted positions, and the LCP's `δ₀` is then the gap less the
     /// predicted shift along the normal.
     pub gap: f64,
@@ -92,12 +92,12 @@ pub struct ContactReport {
     pub correct: f64,
     /// Vertex–tool pairs tested in detection.
     pub pairs_tested: usize,
-    /// Contact passes run (see [`ContactSettings::max_passes`]).
+    /// Contact passes run (see [`super::ContactSettings::max_passes`]).
     pub passes: usize,
     /// Deepest penetration found by the last detection, metres (0 if none).
     pub max_penetration: f64,
     /// Deepest penetration found by the first detection of the step, metres:
-    /// how far inside the free motion (or, with [`ContactSettings::predict`],
+    /// how far inside the free motion (or, with [`super::ContactSettings::predict`],
     /// the predicted positions) put a vertex, i.e. how far from its solution
     /// the first pass linearizes.
     pub first_penetration: f64,

@@ -34,7 +34,7 @@ pub fn load_msh(path: impl AsRef<Path>, options: ValidateOptions) -> Result<TetM
 }
 
 /// Parses the bytes of a Gmsh MSH 4.1 file (ASCII or binary; see
-/// [`super::msh`] for what is read). Nodes that no tetrahedron uses (those of
+/// `mesh/msh.rs` for what is read). Nodes that no tetrahedron uses (those of
 /// surface, line and point elements, or the midside nodes of quadratic
 /// tetrahedra) are dropped.
 pub fn parse_msh(bytes: &[u8], options: ValidateOptions) -> Result<TetMesh> {

@@ -81,6 +81,7 @@ fn apply_compliance_overrides(
     }
 }
 
+#[allow(clippy::too_many_arguments)] // a Bevy system: one parameter per resource and query
 fn detect(
     config: Res<SoftTissueConfig>,
     mut contacts: ResMut<SoftTissueContacts>,
@@ -259,32 +260,40 @@ fn lcp(
     contacts.solver.solve_lcp(&b, PassKind::First);
 }
 
-fn correct(
-    mut contacts: ResMut<SoftTissueContacts>,
-    mut bodies: Query<&'static mut SoftBody>,
-    mut tools: Query<&'static mut Tool>,
-    mut diag: ResMut<SoftTissueDiagnostics>,
-    mut messages: MessageWriter<SoftBodyError>,
+/// Runs `phase` (a pass that moves bodies and sets tool reactions) when the
+/// contact response is active and every listed entity is still there; a
+/// failure is counted, logged and sent as a [`SoftBodyError`].
+fn run_mutating_phase(
+    contacts: &mut SoftTissueContacts,
+    bodies: &mut Query<&'static mut SoftBody>,
+    tools: &mut Query<&'static mut Tool>,
+    diag: &mut SoftTissueDiagnostics,
+    messages: &mut MessageWriter<SoftBodyError>,
+    what: &str,
+    phase: impl FnOnce(
+        &mut crate::contact::ContactSolver,
+        &mut BodyViewMut,
+        &mut ToolViewMut,
+    ) -> crate::error::Result<()>,
 ) {
-    let contacts = &mut *contacts;
     if !contacts.active {
         return;
     }
-    if !listed_present(contacts, &bodies, Some(&tools), &mut diag) {
+    if !listed_present(contacts, bodies, Some(tools), diag) {
         contacts.active = false;
         return;
     }
     let mut b = BodyViewMut {
-        q: &mut bodies,
+        q: bodies,
         e: &contacts.bodies,
     };
     let mut t = ToolViewMut {
-        q: &mut tools,
+        q: tools,
         e: &contacts.tools,
     };
-    if let Err(e) = contacts.solver.correct(&mut b, &mut t, PassKind::First) {
+    if let Err(e) = phase(&mut contacts.solver, &mut b, &mut t) {
         diag.errors += 1;
-        warn!("contact correction failed: {e}");
+        warn!("{what} failed: {e}");
         messages.write(SoftBodyError {
             entity: None,
             phase: None,
@@ -292,6 +301,24 @@ fn correct(
         });
         contacts.active = false;
     }
+}
+
+fn correct(
+    mut contacts: ResMut<SoftTissueContacts>,
+    mut bodies: Query<&'static mut SoftBody>,
+    mut tools: Query<&'static mut Tool>,
+    mut diag: ResMut<SoftTissueDiagnostics>,
+    mut messages: MessageWriter<SoftBodyError>,
+) {
+    run_mutating_phase(
+        &mut contacts,
+        &mut bodies,
+        &mut tools,
+        &mut diag,
+        &mut messages,
+        "contact correction",
+        |s, b, t| s.correct(b, t, PassKind::First),
+    );
 }
 
 fn refine(
@@ -302,31 +329,15 @@ fn refine(
     mut diag: ResMut<SoftTissueDiagnostics>,
     mut messages: MessageWriter<SoftBodyError>,
 ) {
-    let contacts = &mut *contacts;
-    if !contacts.active {
-        return;
-    }
-    if !listed_present(contacts, &bodies, Some(&tools), &mut diag) {
-        contacts.active = false;
-        return;
-    }
-    let mut b = BodyViewMut {
-        q: &mut bodies,
-        e: &contacts.bodies,
-    };
-    let mut t = ToolViewMut {
-        q: &mut tools,
-        e: &contacts.tools,
-    };
-    if let Err(e) = contacts.solver.refine(&mut b, &mut t, config.timestep) {
-        diag.errors += 1;
-        warn!("contact refinement failed: {e}");
-        messages.write(SoftBodyError {
-            entity: None,
-            phase: None,
-            error: e,
-        });
-    }
+    run_mutating_phase(
+        &mut contacts,
+        &mut bodies,
+        &mut tools,
+        &mut diag,
+        &mut messages,
+        "contact refinement",
+        |s, b, t| s.refine(b, t, config.timestep),
+    );
 }
 
 /// Without a contact response this step, forgets warm-start forces and

@@ -3,6 +3,7 @@
 
 use bevy::ecs::intern::Interned;
 use bevy::ecs::schedule::ScheduleLabel;
+use bevy::ecs::system::SystemParam;
 use bevy::prelude::*;
 
 use super::components::{
@@ -100,33 +101,42 @@ fn apply_body_settings(
     }
 }
 
-/// Marks `e` failed in `phase` (see [`SoftBodyFailed`]): back to its state
-/// at the start of the step, reported, left alone until the user clears it.
-fn fail(
-    e: Entity,
-    body: &mut DeformableBody,
-    phase: FailedPhase,
-    error: SoftTissueError,
-    commands: &mut Commands,
-    messages: &mut MessageWriter<SoftBodyError>,
-    diag: &mut SoftTissueDiagnostics,
-) {
-    body.restore_checkpoint();
-    diag.errors += 1;
-    diag.failed_bodies += 1;
-    warn!(
-        "soft body {e}: {phase:?} failed: {error}; it is back at its state at the start of \
-         the step and left alone until `SoftBodyFailed` is removed"
-    );
-    commands.entity(e).insert(SoftBodyFailed {
-        phase,
-        error: error.clone(),
-    });
-    messages.write(SoftBodyError {
-        entity: Some(e),
-        phase: Some(phase),
-        error,
-    });
+/// What a system needs to mark a body failed.
+#[derive(SystemParam)]
+struct Failures<'w, 's> {
+    commands: Commands<'w, 's>,
+    messages: MessageWriter<'w, SoftBodyError>,
+    diag: ResMut<'w, SoftTissueDiagnostics>,
+}
+
+impl Failures<'_, '_> {
+    /// Marks `e` failed in `phase` (see [`SoftBodyFailed`]): back to its
+    /// state at the start of the step, reported, left alone until the user
+    /// clears it.
+    fn fail(
+        &mut self,
+        e: Entity,
+        body: &mut DeformableBody,
+        phase: FailedPhase,
+        error: SoftTissueError,
+    ) {
+        body.restore_checkpoint();
+        self.diag.errors += 1;
+        self.diag.failed_bodies += 1;
+        warn!(
+            "soft body {e}: {phase:?} failed: {error}; it is back at its state at the start of \
+             the step and left alone until `SoftBodyFailed` is removed"
+        );
+        self.commands.entity(e).insert(SoftBodyFailed {
+            phase,
+            error: error.clone(),
+        });
+        self.messages.write(SoftBodyError {
+            entity: Some(e),
+            phase: Some(phase),
+            error,
+        });
+    }
 }
 
 /// The bodies the pipeline steps: not marked failed.
@@ -136,101 +146,65 @@ fn assemble(
     config: Res<SoftTissueConfig>,
     contacts: Res<SoftTissueContacts>,
     mut bodies: Query<Live, Without<SoftBodyFailed>>,
-    mut diag: ResMut<SoftTissueDiagnostics>,
-    mut commands: Commands,
-    mut messages: MessageWriter<SoftBodyError>,
+    mut f: Failures,
 ) {
-    diag.begin_step();
+    f.diag.begin_step();
     for (e, mut body) in &mut bodies {
         let body = &mut body.0;
         body.checkpoint();
         if let Err(err) = phases::assemble(body, &contacts.solver, contacts.active, config.timestep)
         {
-            fail(
-                e,
-                body,
-                FailedPhase::Assemble,
-                err,
-                &mut commands,
-                &mut messages,
-                &mut diag,
-            );
+            f.fail(e, body, FailedPhase::Assemble, err);
             continue;
         }
         let r = *body.report();
-        diag.assemble_ms += r.timings.assemble * 1e3;
-        diag.damping_bodies += usize::from(r.damping);
-        diag.gravity_bodies += usize::from(r.gravity);
+        f.diag.assemble_ms += r.timings.assemble * 1e3;
+        f.diag.damping_bodies += usize::from(r.damping);
+        f.diag.gravity_bodies += usize::from(r.gravity);
     }
 }
 
-fn factorize(
-    mut bodies: Query<Live, Without<SoftBodyFailed>>,
-    mut diag: ResMut<SoftTissueDiagnostics>,
-    mut commands: Commands,
-    mut messages: MessageWriter<SoftBodyError>,
-) {
+fn factorize(mut bodies: Query<Live, Without<SoftBodyFailed>>, mut f: Failures) {
     for (e, mut body) in &mut bodies {
         let body = &mut body.0;
         let failures = body.report().preconditioner.failures;
         if let Err(err) = phases::factorize(body) {
-            fail(
-                e,
-                body,
-                FailedPhase::Factorize,
-                err,
-                &mut commands,
-                &mut messages,
-                &mut diag,
-            );
+            f.fail(e, body, FailedPhase::Factorize, err);
             continue;
         }
         let r = body.report();
         if r.preconditioner.failures > failures {
             // A background factorization failed: the body goes on with its
             // previous factor; reported, not fatal.
-            diag.worker_failures += r.preconditioner.failures - failures;
-            diag.errors += 1;
+            f.diag.worker_failures += r.preconditioner.failures - failures;
+            f.diag.errors += 1;
             if let Some(err) = body.preconditioner().last_error() {
                 warn!("soft body {e}: background factorization failed: {err}");
-                messages.write(SoftBodyError {
+                f.messages.write(SoftBodyError {
                     entity: Some(e),
                     phase: Some(FailedPhase::Factorize),
                     error: err.clone(),
                 });
             }
         }
-        diag.factorize_ms += r.timings.factorize * 1e3;
-        diag.factor_age = diag.factor_age.max(r.preconditioner.factor_age);
-        diag.refreshes += r.preconditioner.refreshes;
+        f.diag.factorize_ms += r.timings.factorize * 1e3;
+        f.diag.factor_age = f.diag.factor_age.max(r.preconditioner.factor_age);
+        f.diag.refreshes += r.preconditioner.refreshes;
     }
 }
 
-fn free_motion(
-    mut bodies: Query<Live, Without<SoftBodyFailed>>,
-    mut diag: ResMut<SoftTissueDiagnostics>,
-    mut commands: Commands,
-    mut messages: MessageWriter<SoftBodyError>,
-) {
+fn free_motion(mut bodies: Query<Live, Without<SoftBodyFailed>>, mut f: Failures) {
     for (e, mut body) in &mut bodies {
         let body = &mut body.0;
         match phases::free_motion(body) {
             Ok(cg) => {
                 let r = body.report();
-                diag.free_motion_ms += r.timings.cg_total * 1e3;
-                diag.cg_iterations += cg.iterations;
-                diag.cg_unconverged += usize::from(!cg.converged);
+                f.diag.free_motion_ms += r.timings.cg_total * 1e3;
+                f.diag.cg_iterations += cg.iterations;
+                f.diag.cg_unconverged += usize::from(!cg.converged);
             }
             Err(err) => {
-                fail(
-                    e,
-                    body,
-                    FailedPhase::FreeMotion,
-                    err,
-                    &mut commands,
-                    &mut messages,
-                    &mut diag,
-                );
+                f.fail(e, body, FailedPhase::FreeMotion, err);
             }
         }
     }

@@ -48,7 +48,7 @@
 //! error until each phase handles it.
 //!
 //! ## Which factor
-//! [`BodyCompliance::accumulate`] asks [`factorized::FactorSource::view`] once
+//! [`BodyCompliance::accumulate`] asks `FactorSource::view` (`factorized.rs`) once
 //! for the factor, warp and [`FactorKey`] of the step; the correction asks the
 //! same view again, so `W` and `Δx` always use the same factor. The key, not a
 //! bit pattern, tells the column cache whose columns it holds.
@@ -166,7 +166,7 @@ impl BodyCompliance {
                 diagonal::accumulate(body, &self.scratch.groups, h2, entries, w, m)
             }
             ComplianceMode::RestPrecomputed => self.rest.accumulate(body, h2, entries, w, m),
-            ComplianceMode::DenseRows => {
+            ComplianceMode::Factorized | ComplianceMode::Exact | ComplianceMode::DenseRows => {
                 let view = prepare(
                     &mut self.source,
                     &mut self.cache,
@@ -175,26 +175,18 @@ impl BodyCompliance {
                     self.reuse_steps,
                 )?;
                 view.fill_j(entries);
-                dense_rows::accumulate(
-                    &mut self.scratch,
-                    &mut self.cache,
-                    view.factor,
-                    h2,
-                    entries,
-                    w,
-                    m,
-                );
-                Ok(())
-            }
-            ComplianceMode::Factorized | ComplianceMode::Exact => {
-                let view = prepare(
-                    &mut self.source,
-                    &mut self.cache,
-                    body,
-                    mode,
-                    self.reuse_steps,
-                )?;
-                view.fill_j(entries);
+                if mode == ComplianceMode::DenseRows {
+                    dense_rows::accumulate(
+                        &mut self.scratch,
+                        &mut self.cache,
+                        view.factor,
+                        h2,
+                        entries,
+                        w,
+                        m,
+                    );
+                    return Ok(());
+                }
                 let shared = matches!(
                     view.key,
                     FactorKey::Preconditioner(_) | FactorKey::Snapshot(_)

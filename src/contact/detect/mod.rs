@@ -17,7 +17,7 @@
 //!   vertex is pushed back out where it came in (its start-of-step position
 //!   carried along with the other body), however deep it is.
 //!
-//! Detection reads the positions [`DetectBody::x`] that the prediction phase
+//! Detection reads the positions `DetectBody::x` that the prediction phase
 //! ([`super::predict`]) fills: the free motion, or in a predicted first pass
 //! the free motion plus the last step's correction. Self-collision is out of
 //! scope.
@@ -76,7 +76,7 @@ pub struct DetectParams {
     pub body_friction: f64,
 }
 
-/// Finds the contacts of all bodies at their [`DetectBody::x`]; returns the
+/// Finds the contacts of all bodies at their positions `DetectBody::x`; returns the
 /// vertex–tool pairs tested.
 pub fn detect<B: Bodies + ?Sized, T: Tools + ?Sized>(
     state: &mut [DetectBody],
