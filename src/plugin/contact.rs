@@ -18,7 +18,7 @@ use crate::math::Vec3 as DVec3;
 use crate::scene::phases;
 
 /// Detection, compliance, LCP, correction and refinement systems. Without it
-/// (`SoftTissuePlugins::build().disable::<ContactPlugin>()`) bodies move
+/// (`SoftTissuePlugins::default().build().disable::<ContactPlugin>()`) bodies move
 /// freely through tools and each other.
 pub struct ContactPlugin {
     pub(super) schedule: Interned<dyn ScheduleLabel>,
