@@ -130,6 +130,10 @@ pub enum SoftTissueError {
     /// body keeps its previous factor.
     #[error("the background factorization panicked: {0}")]
     WorkerPanic(String),
+    /// A step could not finish what it started (for example, a body or tool
+    /// the contact phases listed was removed part way through the step).
+    #[error("step interrupted: {0}")]
+    Interrupted(&'static str),
     /// The GPU path failed (device, shader or validation error).
     #[error("GPU compliance: {0}")]
     Gpu(String),

@@ -658,3 +658,59 @@ fn bad_timesteps_are_reported_not_panics() {
         );
     }
 }
+
+/// A body despawned between detection and correction (by a user system in
+/// the middle of the pipeline): that step's contact response is skipped and
+/// reported, the tool's reaction is not left stale, and the next steps go on
+/// with the bodies that remain.
+#[test]
+fn a_body_removed_mid_pipeline_is_reported_not_stale() {
+    use bevy::ecs::message::Messages;
+    use bevy_soft_tissue::plugin::SoftBodyError;
+    #[derive(Resource)]
+    struct Doomed(Option<Entity>);
+    fn despawn_mid_step(mut doomed: ResMut<Doomed>, mut commands: Commands) {
+        if let Some(e) = doomed.0.take() {
+            commands.entity(e).despawn();
+        }
+    }
+    let mut app = app(SoftTissueConfig {
+        timestep: H,
+        gravity: Some(bevy::math::DVec3::new(0.0, 0.0, -9.81)),
+        ..Default::default()
+    });
+    app.add_systems(
+        FixedPostUpdate,
+        despawn_mid_step
+            .after(SoftTissueSystems::Compliance)
+            .before(SoftTissueSystems::Lcp),
+    );
+    app.insert_resource(Doomed(None));
+    let keep = app.world_mut().spawn(cube(4e-3, 2, 1e-4)).id();
+    let gone = app.world_mut().spawn(cube(4e-3, 2, 0.02)).id();
+    let plate = spawn_plate(&mut app);
+    steps(&mut app, 30);
+    assert!(app.world().get::<ToolReaction>(plate).unwrap().force.z < 0.0);
+    let errors = app.world().resource::<SoftTissueDiagnostics>().errors;
+    app.world_mut().resource_mut::<Doomed>().0 = Some(gone);
+    steps(&mut app, 1);
+    assert!(app.world().get_entity(gone).is_err());
+    let d = app.world().resource::<SoftTissueDiagnostics>();
+    assert!(d.errors > errors, "the skipped response was not reported");
+    let messages = app.world().resource::<Messages<SoftBodyError>>();
+    assert!(messages.get_cursor().read(messages).next().is_some());
+    assert_eq!(
+        *app.world().get::<ToolReaction>(plate).unwrap(),
+        ToolReaction::default(),
+        "a stale reaction was left on the tool"
+    );
+    // The remaining body rests on the plate again.
+    steps(&mut app, 10);
+    let r = app.world().get::<ToolReaction>(plate).unwrap();
+    assert!(r.force.z < 0.0 && r.contacts > 0, "{r:?}");
+    let min_z = positions(&app, keep)
+        .iter()
+        .map(|p| p.z)
+        .fold(f64::INFINITY, f64::min);
+    assert!(min_z > -1e-5, "{min_z}");
+}

@@ -14,6 +14,7 @@ use super::diagnostics::SoftTissueDiagnostics;
 use super::sets::SoftTissueSystems;
 use super::views::{BodyView, BodyViewMut, ToolView, ToolViewMut, all_present};
 use crate::contact::PassKind;
+use crate::error::SoftTissueError;
 use crate::math::Vec3 as DVec3;
 use crate::scene::phases;
 
@@ -142,20 +143,22 @@ fn detect(
 /// Whether the bodies and tools detection listed are all still there; if not,
 /// the step's contact response is skipped (counted as an error).
 fn listed_present(
-    contacts: &SoftTissueContacts,
-    bodies: &Query<&'static mut SoftBody>,
-    tools: Option<&Query<&'static mut Tool>>,
+    present: bool,
     diag: &mut SoftTissueDiagnostics,
+    messages: &mut MessageWriter<SoftBodyError>,
 ) -> bool {
-    let ok = all_present(bodies, &contacts.bodies)
-        && tools.is_none_or(|t| all_present(t, &contacts.tools));
-    if !ok {
+    if !present {
         diag.errors += 1;
-        warn!(
-            "a body or tool was removed during the contact phases; this step's response is skipped"
-        );
+        let error =
+            SoftTissueError::Interrupted("a body or tool was removed during the contact phases");
+        warn!("{error}; the step's contact response is skipped");
+        messages.write(SoftBodyError {
+            entity: None,
+            phase: None,
+            error,
+        });
     }
-    ok
+    present
 }
 
 /// The GPU compliance builder, created once a render device exists.
@@ -195,7 +198,11 @@ fn compliance(
         return;
     }
     let contacts = &mut *contacts;
-    if !listed_present(contacts, &bodies, None, &mut diag) {
+    if !listed_present(
+        all_present(&bodies, &contacts.bodies),
+        &mut diag,
+        &mut messages,
+    ) {
         contacts.active = false;
         return;
     }
@@ -243,12 +250,17 @@ fn lcp(
     mut contacts: ResMut<SoftTissueContacts>,
     bodies: Query<&'static SoftBody>,
     mut diag: ResMut<SoftTissueDiagnostics>,
+    mut messages: MessageWriter<SoftBodyError>,
 ) {
     if !contacts.active {
         return;
     }
     let contacts = &mut *contacts;
-    if !all_present(&bodies, &contacts.bodies) {
+    if !listed_present(
+        all_present(&bodies, &contacts.bodies),
+        &mut diag,
+        &mut messages,
+    ) {
         contacts.active = false;
         return;
     }
@@ -279,7 +291,8 @@ fn run_mutating_phase(
     if !contacts.active {
         return;
     }
-    if !listed_present(contacts, bodies, Some(tools), diag) {
+    let present = all_present(bodies, &contacts.bodies) && all_present(tools, &contacts.tools);
+    if !listed_present(present, diag, messages) {
         contacts.active = false;
         return;
     }

@@ -72,6 +72,8 @@ pub struct AsyncFactorizer {
     alive: Arc<AtomicBool>,
     /// Test hook: the next job panics.
     fail: Arc<AtomicBool>,
+    /// Test hook: the thread exits at its next job.
+    stop: Arc<AtomicBool>,
     in_flight: bool,
     pub(super) spare: Option<(Vec<Mat3>, Vec<Mat3>, LdltFactor)>,
     pub(super) hint: Vec<u32>,
@@ -96,6 +98,8 @@ impl AsyncFactorizer {
         let alive_w = Arc::clone(&alive);
         let fail = Arc::new(AtomicBool::new(false));
         let fail_w = Arc::clone(&fail);
+        let stop = Arc::new(AtomicBool::new(false));
+        let stop_w = Arc::clone(&stop);
         let handle = std::thread::Builder::new()
             .name("soft-tissue-ldlt".into())
             .spawn(move || {
@@ -105,6 +109,11 @@ impl AsyncFactorizer {
                     values: Vec::new(),
                 };
                 while let Ok(mut job) = job_rx.recv() {
+                    if stop_w.load(Ordering::SeqCst) {
+                        // Exit as a dead thread would, but give the slot back.
+                        IN_FLIGHT.fetch_sub(1, Ordering::SeqCst);
+                        break;
+                    }
                     let t0 = Instant::now();
                     mat.values = std::mem::take(&mut job.values);
                     // A panic in the factorization is caught: the slot is
@@ -166,6 +175,7 @@ impl AsyncFactorizer {
             handle,
             alive,
             fail,
+            stop,
             in_flight: false,
             spare,
             hint: Vec::new(),
@@ -184,6 +194,14 @@ impl AsyncFactorizer {
     #[doc(hidden)]
     pub fn inject_panic(&self) {
         self.fail.store(true, Ordering::SeqCst);
+    }
+
+    /// Test hook: the worker thread exits at its next job, as a thread that
+    /// died or could not be started leaves the preconditioner (it then
+    /// refreshes on the stepping thread).
+    #[doc(hidden)]
+    pub fn inject_stop(&self) {
+        self.stop.store(true, Ordering::SeqCst);
     }
 
     /// A flag that turns false once the worker thread has exited.

@@ -256,25 +256,47 @@ fn bad_parameters_are_clear_errors() {
     assert!(DeformableBody::new(mesh, TissueMaterial::new(1000.0, 1e4, 0.3), s).is_err());
 }
 
+/// A beam clamped at one end under gravity, with the default (`Async`) preconditioner.
+fn clamped_beam() -> DeformableBody {
+    let mut b = DeformableBody::new(
+        beam([6, 2, 2], 0.1, 0.02),
+        TissueMaterial::new(1000.0, 1e4, 0.3),
+        BodySettings {
+            gravity: Some(v3(0.0, 0.0, -9.81)),
+            ..Default::default()
+        },
+    )
+    .unwrap();
+    b.fix_where(|p| p.x < 1e-9);
+    b
+}
+
+/// A worker thread that is gone (it died, or could not be started): the
+/// body refreshes its factor on the stepping thread every
+/// `WORKER_FALLBACK_PERIOD` steps instead of keeping an ever older one.
+#[test]
+fn a_stopped_worker_falls_back_to_the_stepping_thread() {
+    use bevy_soft_tissue::solver::WORKER_FALLBACK_PERIOD;
+    let mut b = clamped_beam();
+    b.step(0.01).unwrap();
+    b.preconditioner().worker().unwrap().inject_stop();
+    for _ in 0..60 {
+        b.step(0.01).unwrap();
+        std::thread::sleep(std::time::Duration::from_millis(1));
+    }
+    assert!(!b.preconditioner().worker().unwrap().is_alive());
+    let st = b.report().preconditioner;
+    assert!(st.fallback_refreshes >= 5, "{st:?}");
+    assert!(st.factor_age <= WORKER_FALLBACK_PERIOD, "{st:?}");
+    assert!(b.report().cg.converged);
+}
+
 /// A panic inside the background factorization releases the worker's slot
 /// and is reported; the body keeps its factor and refreshes again, and
 /// another body's worker keeps getting turns.
 #[test]
 fn a_panicking_background_factorization_is_contained() {
-    let body = || {
-        let mut b = DeformableBody::new(
-            beam([6, 2, 2], 0.1, 0.02),
-            TissueMaterial::new(1000.0, 1e4, 0.3),
-            BodySettings {
-                gravity: Some(v3(0.0, 0.0, -9.81)),
-                ..Default::default()
-            },
-        )
-        .unwrap();
-        b.fix_where(|p| p.x < 1e-9);
-        b
-    };
-    let (mut a, mut b) = (body(), body());
+    let (mut a, mut b) = (clamped_beam(), clamped_beam());
     a.step(0.01).unwrap();
     b.step(0.01).unwrap();
     a.preconditioner().worker().unwrap().inject_panic();
