@@ -8,26 +8,31 @@
 //! Every step of every case is checked ([`Monitor::check`]):
 //! - no NaN or infinity in positions and velocities;
 //! - the conjugate gradient converged (after a rescue, if one was needed);
-//! - in a step without contact, the total energy (kinetic + elastic +
-//!   gravity) does not rise from the step before by more than a stated
-//!   allowance, `ALLOWANCE × E_ref`, with `E_ref` the case's energy scale and
-//!   `ALLOWANCE` = 1e-3 (the CG stops at a relative residual of 1e-6; the
-//!   allowance covers that error and the first-order linearization of the
-//!   co-rotational step, not a tuned margin);
+//! - the total energy (kinetic + elastic + gravity) does not rise from the
+//!   step before by more than the work of the contact forces that step
+//!   (`Σ f·Δx` over the nodes, with the end-of-step forces of all passes),
+//!   plus a stated allowance `ALLOWANCE × E_ref`, with `E_ref` the case's
+//!   energy scale and `ALLOWANCE` = 1e-3 (the CG stops at a relative residual
+//!   of 1e-6; the allowance covers that, not a tuned margin). This holds for
+//!   the implicit step with its exact compliance. Every contact case runs
+//!   twice: with the default solver (`Async` preconditioner, `Factorized`
+//!   compliance from its factor) and with the exact one (`Exact` for both). In
+//!   steps without contact the bound is asserted for both; in steps with
+//!   contact only for the exact one;
 //! - no surface vertex is deeper than the penetration tolerance inside a tool
 //!   or the other body, by a detection of its own at the step's end.
 //!
-//! In steps with contact the energy is recorded, not asserted, and each case
-//! prints the largest rise beyond the work of the contact forces (`Σ f·Δx`
-//! over the step's nodes, all passes; end-of-step forces of the implicit
-//! step). Measured: at most 4e-4 `E_ref` when the lens lands at h = 1/240,
-//! 9e-4 when the ν = 0.49 lens is pressed, 3e-3 for the 0.5 m/s impact, none
-//! for the squeezed pair; but when the lens lands from a fall of a whole
-//! step, 0.37 `E_ref` at h = 1/60 and 0.1 at 0.02 (10⁶ core), and 5e2 to
-//! 1.2e3 at 0.04, where the first step puts the whole lens inside the plate
-//! ([`stiff_core_dropped_with_large_steps`]). That is an open finding: the
-//! position-level correction (`Δv = Δx / h`) of a deep first-step
-//! penetration injects energy.
+//! With the exact compliance every contact step keeps the bound to round-off
+//! (measured: at most 6e-14 `E_ref`). With the default solver the
+//! correction `Δx = h² P⁻¹ Hᵀ λ` uses the preconditioner's factor `P`, made
+//! from an older matrix, not `A`: the displacement differs from the one the
+//! contact forces would make, and a contact step can gain energy beyond their
+//! work. That gain is recorded and printed, not asserted: at most 1e-3
+//! `E_ref` when the lens lands at h = 1/240, 2e-3 when pressed, 4e-2 for the
+//! 0.5 m/s impact; when the lens lands from a whole-step fall, up to 3e-2 at
+//! h = 1/60, 0.1 at 0.02 and 1 to 2e2 at 0.04 (where its first step puts the
+//! whole lens inside the plate). It varies from run to run with the
+//! background factor's timing.
 //!
 //! Run it in release: `cargo test --release --test stability` (about 3 s;
 //! about 6 s in the test profile of `cargo test`).
@@ -56,6 +61,39 @@ struct Monitor {
     worst_rise: f64,
     /// The largest rise in a step with contacts, relative to `e_ref`.
     contact_rise: f64,
+    /// Whether the scene uses the exact compliance (energy asserted in contact too).
+    exact: bool,
+}
+
+/// The solver variants each contact case runs with: the default (`Async`
+/// preconditioner, `Factorized` compliance from its factor) and the exact
+/// one (a fresh factorization every step for both).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Variant {
+    Default,
+    Exact,
+}
+
+const VARIANTS: [Variant; 2] = [Variant::Default, Variant::Exact];
+
+impl Variant {
+    fn body(self, base: BodySettings) -> BodySettings {
+        match self {
+            Variant::Default => base,
+            Variant::Exact => BodySettings {
+                preconditioner: PreconditionerKind::Exact,
+                ..base
+            },
+        }
+    }
+
+    fn contact(self) -> ContactSettings {
+        let mut c = contact_settings();
+        if self == Variant::Exact {
+            c.compliance = ComplianceMode::Exact;
+        }
+        c
+    }
 }
 
 fn total_energy(scene: &Scene, g: Vec3) -> f64 {
@@ -77,7 +115,13 @@ fn total_energy(scene: &Scene, g: Vec3) -> f64 {
 impl Monitor {
     fn new(name: impl Into<String>, scene: &Scene, gravity: Vec3, e_ref: f64) -> Self {
         let settings = *scene.contact.settings();
+        let exact = settings.compliance == ComplianceMode::Exact
+            && scene
+                .bodies
+                .iter()
+                .all(|b| b.settings().preconditioner == PreconditionerKind::Exact);
         Self {
+            exact,
             name: name.into(),
             gravity,
             e_ref,
@@ -100,11 +144,12 @@ impl Monitor {
             }
         };
         println!(
-            "{}: {} steps, largest energy rise without contact {} (asserted), with contact {} (recorded)",
+            "{}: {} steps, largest energy rise without contact {} (asserted), with contact {} ({})",
             self.name,
             self.steps,
             show(self.worst_rise),
-            show(self.contact_rise)
+            show(self.contact_rise),
+            if self.exact { "asserted" } else { "recorded" }
         );
     }
 
@@ -154,14 +199,17 @@ impl Monitor {
             );
         }
         let rise = e - self.energy - work;
-        if scene.contact.report().contacts > 0 {
-            // Not asserted in contact (see the module docs): recorded.
+        let contact = scene.contact.report().contacts > 0;
+        if contact {
             self.contact_rise = self.contact_rise.max(rise / self.e_ref);
         } else {
             self.worst_rise = self.worst_rise.max(rise / self.e_ref);
+        }
+        if !contact || self.exact {
             assert!(
                 rise <= ALLOWANCE * self.e_ref,
-                "{name}, step {s}: energy rose by {rise:.3e} J (allowance {:.3e} J)",
+                "{name}, step {s}: energy rose by {rise:.3e} J beyond the contact forces' work \
+                 {work:.3e} J (allowance {:.3e} J)",
                 ALLOWANCE * self.e_ref
             );
         }
@@ -242,18 +290,18 @@ fn energy_scale(b: &DeformableBody) -> f64 {
 }
 
 /// Drops the stiff-core lens onto a plate for 0.6 s (see [`stiff_core_drop`]).
-fn stiff_core_drop(factor: f64, h: f64) {
-    let settings = BodySettings {
+fn stiff_core_drop(factor: f64, h: f64, v: Variant) {
+    let settings = v.body(BodySettings {
         gravity: Some(gravity()),
         ..Default::default()
-    };
-    let mut scene = Scene::new(contact_settings()).unwrap();
+    });
+    let mut scene = Scene::new(v.contact()).unwrap();
     let lens = cored_lens(6, factor, 0.45, settings);
     let e_ref = energy_scale(&lens);
     scene.add_body(lens);
     scene.add_tool(plate(-LENS_RADII[2] - 5e-4, 0.3));
     let mut m = Monitor::new(
-        format!("contrast {factor:e}, h {h:.4}"),
+        format!("contrast {factor:e}, h {h:.4}, {v:?}"),
         &scene,
         gravity(),
         e_ref,
@@ -279,22 +327,23 @@ fn stiff_core_drop(factor: f64, h: f64) {
 /// 0.5 mm onto a plate: contrast 10², 10⁴, 10⁶ at h = 1/240 s.
 #[test]
 fn stiff_core_in_soft_lens_dropped_on_a_plate() {
-    for factor in [1e2, 1e4, 1e6] {
-        stiff_core_drop(factor, 1.0 / 240.0);
+    for v in VARIANTS {
+        for factor in [1e2, 1e4, 1e6] {
+            stiff_core_drop(factor, 1.0 / 240.0, v);
+        }
     }
 }
 
 /// The same drops at h = 1/60, 0.02 and 0.04 s: the lens falls the whole
 /// gap within the first step (2.7, 3.9 and 15.7 mm: at 0.04 s more than
-/// three times its own thickness) and lands in one correction. Positions stay
-/// finite, CG converges, no vertex stays inside the plate, and no step
-/// without contact gains energy; the landing steps gain energy beyond the
-/// contact forces' work (recorded, see the module docs).
+/// three times its own thickness) and lands in one correction.
 #[test]
 fn stiff_core_dropped_with_large_steps() {
     for h in [1.0 / 60.0, 0.02, 0.04] {
         for factor in [1e2, 1e4, 1e6] {
-            stiff_core_drop(factor, h);
+            for v in VARIANTS {
+                stiff_core_drop(factor, h, v);
+            }
         }
     }
 }
@@ -336,9 +385,12 @@ fn graded_mesh_with_sizes_100_to_1() {
 /// sphere with friction onto a plate.
 #[test]
 fn nearly_incompressible_lens_pressed_with_friction() {
-    for poisson in [0.49, 0.45] {
-        let mut scene = Scene::new(contact_settings()).unwrap();
-        let lens = cored_lens(6, 5.0, poisson, BodySettings::default());
+    for (poisson, v) in [0.49, 0.45]
+        .into_iter()
+        .flat_map(|p| VARIANTS.map(|v| (p, v)))
+    {
+        let mut scene = Scene::new(v.contact()).unwrap();
+        let lens = cored_lens(6, 5.0, poisson, v.body(BodySettings::default()));
         let e_ref = energy_scale(&lens);
         scene.add_body(lens);
         scene.add_tool(plate(-LENS_RADII[2], 0.5));
@@ -353,7 +405,7 @@ fn nearly_incompressible_lens_pressed_with_friction() {
             .unwrap(),
         );
         let mut m = Monitor::new(
-            format!("pressed, ν = {poisson}"),
+            format!("pressed, ν = {poisson}, {v:?}"),
             &scene,
             Vec3::zeros(),
             e_ref,
@@ -428,90 +480,108 @@ fn crushed_start_with_inverted_elements_recovers() {
 /// A sphere hits a soft block at 0.5 m/s and goes on into it for 3 mm.
 #[test]
 fn fast_tool_impact() {
-    let mesh = generate::box_mesh(v3(-0.01, -0.01, 0.0), v3(0.01, 0.01, 0.01), [6, 6, 3]).unwrap();
-    let material = TissueMaterial::new(1000.0, 2e4, 0.45).with_damping(2.0, 0.0);
-    let mut body = DeformableBody::new(mesh, material, BodySettings::default()).unwrap();
-    body.fix_where(|p| p.z < 1e-9);
-    let e_ref = energy_scale(&body);
-    let mut scene = Scene::new(contact_settings()).unwrap();
-    scene.add_body(body);
-    let r = 3e-3;
-    let z0 = 0.01 + r + 1e-3;
-    scene.add_tool(RigidTool::new(ToolShape::Sphere { radius: r }, at(v3(0.0, 0.0, z0))).unwrap());
-    let mut m = Monitor::new("impact 0.5 m/s", &scene, Vec3::zeros(), e_ref);
-    let h = 1.0 / 240.0;
-    let v = 0.5;
-    for s in 1..=60 {
-        let z = (z0 - v * s as f64 * h).max(z0 - 4e-3);
-        scene.tools[0].set_pose(at(v3(0.0, 0.0, z))).unwrap();
-        m.step(&mut scene, h);
+    for variant in VARIANTS {
+        let mesh =
+            generate::box_mesh(v3(-0.01, -0.01, 0.0), v3(0.01, 0.01, 0.01), [6, 6, 3]).unwrap();
+        let material = TissueMaterial::new(1000.0, 2e4, 0.45).with_damping(2.0, 0.0);
+        let mut body =
+            DeformableBody::new(mesh, material, variant.body(BodySettings::default())).unwrap();
+        body.fix_where(|p| p.z < 1e-9);
+        let e_ref = energy_scale(&body);
+        let mut scene = Scene::new(variant.contact()).unwrap();
+        scene.add_body(body);
+        let r = 3e-3;
+        let z0 = 0.01 + r + 1e-3;
+        scene.add_tool(
+            RigidTool::new(ToolShape::Sphere { radius: r }, at(v3(0.0, 0.0, z0))).unwrap(),
+        );
+        let mut m = Monitor::new(
+            format!("impact 0.5 m/s, {variant:?}"),
+            &scene,
+            Vec3::zeros(),
+            e_ref,
+        );
+        let h = 1.0 / 240.0;
+        let v = 0.5;
+        for s in 1..=60 {
+            let z = (z0 - v * s as f64 * h).max(z0 - 4e-3);
+            scene.tools[0].set_pose(at(v3(0.0, 0.0, z))).unwrap();
+            m.step(&mut scene, h);
+        }
+        assert!(scene.tools[0].reaction().0.z > 0.0);
+        m.report();
     }
-    assert!(scene.tools[0].reaction().0.z > 0.0);
-    m.report();
 }
 
 /// Two soft blocks squeezed together between two rough plates closing at
 /// 10 mm/s (the blocks touch each other without friction).
 #[test]
 fn two_bodies_squeezed_together() {
-    let block = |z0: f64| {
-        let mesh = generate::box_mesh(
-            v3(-0.004, -0.004, z0),
-            v3(0.004, 0.004, z0 + 0.004),
-            [3, 3, 3],
-        )
-        .unwrap();
-        DeformableBody::new(
-            mesh,
-            TissueMaterial::new(1000.0, 1e4, 0.45).with_damping(5.0, 0.0),
-            BodySettings::default(),
-        )
-        .unwrap()
-    };
-    let mut scene = Scene::new(contact_settings()).unwrap();
-    let (a, b) = (block(0.0), block(0.0041));
-    let e_ref = energy_scale(&a);
-    scene.add_body(a);
-    scene.add_body(b);
-    let box_tool = |z: f64| {
-        RigidTool::new(
-            ToolShape::Box {
-                half_extents: v3(0.01, 0.01, 0.002),
-            },
-            at(v3(0.0, 0.0, z)),
-        )
-        .unwrap()
-        .with_friction(0.8)
-        .unwrap()
-    };
-    scene.add_tool(box_tool(-0.002 - 1e-4));
-    scene.add_tool(box_tool(0.0081 + 0.002 + 1e-4));
-    let mut m = Monitor::new("two bodies squeezed", &scene, Vec3::zeros(), e_ref);
-    let h = 1.0 / 60.0;
-    for s in 1..=60 {
-        let d = (0.01 * s as f64 * h).min(2e-3);
-        scene.tools[1]
-            .set_pose(at(v3(0.0, 0.0, 0.0081 + 0.002 + 1e-4 - d)))
+    for v in VARIANTS {
+        let block = |z0: f64| {
+            let mesh = generate::box_mesh(
+                v3(-0.004, -0.004, z0),
+                v3(0.004, 0.004, z0 + 0.004),
+                [3, 3, 3],
+            )
             .unwrap();
-        m.step(&mut scene, h);
+            DeformableBody::new(
+                mesh,
+                TissueMaterial::new(1000.0, 1e4, 0.45).with_damping(5.0, 0.0),
+                v.body(BodySettings::default()),
+            )
+            .unwrap()
+        };
+        let mut scene = Scene::new(v.contact()).unwrap();
+        let (a, b) = (block(0.0), block(0.0041));
+        let e_ref = energy_scale(&a);
+        scene.add_body(a);
+        scene.add_body(b);
+        let box_tool = |z: f64| {
+            RigidTool::new(
+                ToolShape::Box {
+                    half_extents: v3(0.01, 0.01, 0.002),
+                },
+                at(v3(0.0, 0.0, z)),
+            )
+            .unwrap()
+            .with_friction(0.8)
+            .unwrap()
+        };
+        scene.add_tool(box_tool(-0.002 - 1e-4));
+        scene.add_tool(box_tool(0.0081 + 0.002 + 1e-4));
+        let mut m = Monitor::new(
+            format!("two bodies squeezed, {v:?}"),
+            &scene,
+            Vec3::zeros(),
+            e_ref,
+        );
+        let h = 1.0 / 60.0;
+        for s in 1..=60 {
+            let d = (0.01 * s as f64 * h).min(2e-3);
+            scene.tools[1]
+                .set_pose(at(v3(0.0, 0.0, 0.0081 + 0.002 + 1e-4 - d)))
+                .unwrap();
+            m.step(&mut scene, h);
+        }
+        // The squeeze reaches the lower plate through both blocks.
+        let (lo, hi) = (scene.tools[0].reaction().0, scene.tools[1].reaction().0);
+        assert!(
+            lo.z < 0.0 && hi.z > 0.0,
+            "lower plate {lo:?}, upper plate {hi:?}"
+        );
+        // No vertex of one block inside the other, checked by detection alone.
+        let mut probe = ContactSolver::new(contact_settings()).unwrap();
+        probe
+            .detect(&scene.bodies, &NO_TOOLS, h, PassKind::First)
+            .unwrap();
+        let deepest = probe.contacts().iter().map(|c| -c.gap).fold(0.0, f64::max);
+        assert!(
+            deepest <= contact_settings().penetration_tolerance,
+            "{deepest}"
+        );
+        m.report();
     }
-    // The squeeze reaches the lower plate through both blocks.
-    let (lo, hi) = (scene.tools[0].reaction().0, scene.tools[1].reaction().0);
-    assert!(
-        lo.z < 0.0 && hi.z > 0.0,
-        "lower plate {lo:?}, upper plate {hi:?}"
-    );
-    // No vertex of one block inside the other, checked by detection alone.
-    let mut probe = ContactSolver::new(contact_settings()).unwrap();
-    probe
-        .detect(&scene.bodies, &NO_TOOLS, h, PassKind::First)
-        .unwrap();
-    let deepest = probe.contacts().iter().map(|c| -c.gap).fold(0.0, f64::max);
-    assert!(
-        deepest <= contact_settings().penetration_tolerance,
-        "{deepest}"
-    );
-    m.report();
 }
 
 /// A rigid rotation of the rest shape, through the stepping path (the step's
