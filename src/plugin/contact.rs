@@ -125,13 +125,7 @@ fn detect(
         .solver
         .detect(&b, &t, config.timestep, PassKind::First)
     {
-        diag.errors += 1;
-        warn!("detection failed: {e}");
-        messages.write(SoftBodyError {
-            entity: None,
-            phase: None,
-            error: e,
-        });
+        contact_failed(&mut diag, &mut messages, "detection", e);
         contacts.active = false;
         return;
     }
@@ -142,6 +136,22 @@ fn detect(
 
 /// Whether the bodies and tools detection listed are all still there; if not,
 /// the step's contact response is skipped (counted as an error).
+/// Counts, logs and sends a contact phase's error.
+fn contact_failed(
+    diag: &mut SoftTissueDiagnostics,
+    messages: &mut MessageWriter<SoftBodyError>,
+    what: &str,
+    error: SoftTissueError,
+) {
+    diag.errors += 1;
+    warn!("{what} failed: {error}");
+    messages.write(SoftBodyError {
+        entity: None,
+        phase: None,
+        error,
+    });
+}
+
 fn listed_present(
     present: bool,
     diag: &mut SoftTissueDiagnostics,
@@ -235,13 +245,7 @@ fn compliance(
             .build_compliance(&mut b, PassKind::First, None)
     };
     if let Err(e) = result {
-        diag.errors += 1;
-        warn!("compliance failed: {e}");
-        messages.write(SoftBodyError {
-            entity: None,
-            phase: None,
-            error: e,
-        });
+        contact_failed(&mut diag, &mut messages, "compliance", e);
         contacts.active = false;
     }
 }
@@ -305,13 +309,7 @@ fn run_mutating_phase(
         e: &contacts.tools,
     };
     if let Err(e) = phase(&mut contacts.solver, &mut b, &mut t) {
-        diag.errors += 1;
-        warn!("{what} failed: {e}");
-        messages.write(SoftBodyError {
-            entity: None,
-            phase: None,
-            error: e,
-        });
+        contact_failed(diag, messages, what, e);
         contacts.active = false;
     }
 }
