@@ -188,16 +188,6 @@ impl Monitor {
             }
         }
         let e = total_energy(scene, self.gravity);
-        if std::env::var("STABILITY_DEBUG").is_ok() {
-            let b = &scene.bodies[0];
-            eprintln!(
-                "{name} {s}: E {e:.4e} K {:.4e} U {:.4e} work {work:.4e} reaction {:?} contacts {}",
-                b.kinetic_energy(),
-                b.elastic_energy(),
-                scene.tools.first().map(|t| t.reaction().0),
-                scene.contact.report().contacts
-            );
-        }
         let rise = e - self.energy - work;
         let contact = scene.contact.report().contacts > 0;
         if contact {

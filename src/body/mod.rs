@@ -23,6 +23,10 @@
 //!
 //! [`DeformableBody::step`] runs 1–3.
 //!
+//! Only phase 3, once its checks have passed, and phase 4 change the state
+//! (`x`, `v`): a phase that fails returns its error with the body still in
+//! its state of the start of the step.
+//!
 //! ## Inverted elements
 //! For an element pressed flat or through itself (`det F ≤ 0`) the rotation is
 //! not unique: any `U S Vᵀ` of the SVD `F = U Σ Vᵀ` with a sign matrix `S` that
@@ -75,8 +79,6 @@ pub struct DeformableBody {
     mass: Vec<f64>,
     x: Vec<Vec3>,
     x_start: Vec<Vec3>,
-    /// State saved by [`Self::checkpoint`].
-    saved: (Vec<Vec3>, Vec<Vec3>),
     v: Vec<Vec3>,
     accel: Vec<Vec3>,
     prescribed: Vec<Vec3>,
@@ -135,7 +137,6 @@ impl DeformableBody {
         Ok(Self {
             id: NEXT_ID.fetch_add(1, std::sync::atomic::Ordering::Relaxed),
             x_start: x.clone(),
-            saved: (x.clone(), vec![Vec3::zeros(); n]),
             surface,
             young,
             elements,
@@ -360,20 +361,6 @@ impl DeformableBody {
         }
         self.settings = settings;
         Ok(())
-    }
-
-    /// Saves positions and velocities, for [`Self::restore_checkpoint`] (no
-    /// allocation: the buffers are kept).
-    pub fn checkpoint(&mut self) {
-        self.saved.0.copy_from_slice(&self.x);
-        self.saved.1.copy_from_slice(&self.v);
-    }
-
-    /// Returns to the state of the last [`Self::checkpoint`] (the body's
-    /// initial state if none was taken), for a step that failed part way.
-    pub fn restore_checkpoint(&mut self) {
-        self.x.copy_from_slice(&self.saved.0);
-        self.v.copy_from_slice(&self.saved.1);
     }
 
     /// Overwrites positions and velocities (for example to start deformed).

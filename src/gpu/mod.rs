@@ -138,6 +138,16 @@ struct StepBuffers {
     readback: GrowBuffer,
 }
 
+impl StepBuffers {
+    /// The distinct constraint rows of `entries`, sorted, into `rows`.
+    fn fill_rows(&mut self, entries: &[JacEntry]) {
+        self.rows.clear();
+        self.rows.extend(entries.iter().map(|e| e.row as usize));
+        self.rows.sort_unstable();
+        self.rows.dedup();
+    }
+}
+
 /// The GPU compliance builder (a [`ComplianceBackend`]).
 pub struct GpuCompliance {
     device: RenderDevice,
@@ -305,6 +315,19 @@ impl GpuCompliance {
         h: f64,
         entries: &[JacEntry],
     ) -> Result<(&[usize], &[f32])> {
+        self.step.fill_rows(entries);
+        self.compute_rows_filled(body_id, factor, key, h, entries)
+    }
+
+    /// [`Self::compute`] with `self.step.rows` already filled from `entries`.
+    fn compute_rows_filled(
+        &mut self,
+        body_id: u64,
+        factor: &LdltFactor,
+        key: FactorKey,
+        h: f64,
+        entries: &[JacEntry],
+    ) -> Result<(&[usize], &[f32])> {
         self.pipelines()?;
         self.upload_factor(body_id, factor, key);
         let s = &*factor.symbolic;
@@ -336,11 +359,7 @@ impl GpuCompliance {
             st.paths[c * stride] = p.len() as u32;
             st.paths[c * stride + 1..c * stride + 1 + p.len()].copy_from_slice(p);
         }
-        // Local rows and their entries (contact-node index + j).
-        st.rows.clear();
-        st.rows.extend(entries.iter().map(|e| e.row as usize));
-        st.rows.sort_unstable();
-        st.rows.dedup();
+        // Local rows (filled by the caller) and their entries (contact-node index + j).
         let m = st.rows.len();
         st.by_row.clear();
         for e in entries {
@@ -538,28 +557,11 @@ impl ComplianceBackend for GpuCompliance {
         w: &mut [f64],
         m: usize,
     ) -> Result<bool> {
-        // Entries are sorted by node, not by row: count the distinct rows
-        // with a bitmap-free pass over the (small) row range.
-        let (lo, hi) = entries
-            .iter()
-            .fold((u32::MAX, 0), |(lo, hi), e| (lo.min(e.row), hi.max(e.row)));
-        let rows = if entries.is_empty() {
-            0
-        } else {
-            let mut seen = std::mem::take(&mut self.step.row_ptr);
-            seen.clear();
-            seen.resize((hi - lo + 1) as usize, 0);
-            for e in entries {
-                seen[(e.row - lo) as usize] = 1;
-            }
-            let count = seen.iter().filter(|&&s| s != 0).count();
-            self.step.row_ptr = seen;
-            count
-        };
-        if rows < self.min_rows {
+        self.step.fill_rows(entries);
+        if self.step.rows.len() < self.min_rows {
             return Ok(false);
         }
-        let (rows, block) = self.compute(body_id, factor, key, h, entries)?;
+        let (rows, block) = self.compute_rows_filled(body_id, factor, key, h, entries)?;
         let k = rows.len();
         for (a, &ra) in rows.iter().enumerate() {
             for (b, &rb) in rows.iter().enumerate() {

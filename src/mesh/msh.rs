@@ -169,6 +169,32 @@ impl<'a> Reader<'a> {
         }
     }
 
+    /// Enters section `name` (after `$MeshFormat`, once) and reads its header:
+    /// the block count and the total count of `what` (items of at least
+    /// `per_item` bytes), then the smallest and largest tags.
+    fn section_header(
+        &mut self,
+        name: &'static str,
+        format_seen: bool,
+        seen_before: bool,
+        what: &str,
+        per_item: usize,
+    ) -> Result<(usize, usize)> {
+        self.section = name;
+        if !format_seen {
+            return Err(self.err(format!("`{name}` before `$MeshFormat`")));
+        }
+        if seen_before {
+            return Err(self.err(format!("a second `{name}` section")));
+        }
+        let per_block = if self.binary { 12 + self.size_bytes } else { 8 };
+        let blocks = self.count("block count", per_block)?;
+        let total = self.count(&format!("{what} count"), per_item)?;
+        let _min_tag = self.size("the smallest tag")?;
+        let _max_tag = self.size("the largest tag")?;
+        Ok((blocks, total))
+    }
+
     /// Skips an unread section to the line after `$End<name>`.
     fn skip_section(&mut self, name: &str) -> Result<()> {
         let end = format!("\n$End{name}");
@@ -240,19 +266,9 @@ pub(crate) fn parse(bytes: &[u8]) -> Result<(Vec<Vec3>, Vec<[usize; 4]>)> {
                 format = true;
             }
             "$Nodes" => {
-                r.section = "$Nodes";
-                if !format {
-                    return Err(r.err("`$Nodes` before `$MeshFormat`"));
-                }
-                if positions.is_some() {
-                    return Err(r.err("a second `$Nodes` section"));
-                }
                 let per_node = if r.binary { r.size_bytes + 24 } else { 8 };
-                let blocks =
-                    r.count("block count", if r.binary { 12 + r.size_bytes } else { 8 })?;
-                let total = r.count("node count", per_node)?;
-                let _min_tag = r.size("the smallest tag")?;
-                let _max_tag = r.size("the largest tag")?;
+                let (blocks, total) =
+                    r.section_header("$Nodes", format, positions.is_some(), "node", per_node)?;
                 let mut x = Vec::with_capacity(total);
                 tag_to_index.reserve(total);
                 for _ in 0..blocks {
@@ -296,19 +312,9 @@ pub(crate) fn parse(bytes: &[u8]) -> Result<(Vec<Vec3>, Vec<[usize; 4]>)> {
                 positions = Some(x);
             }
             "$Elements" => {
-                r.section = "$Elements";
-                if !format {
-                    return Err(r.err("`$Elements` before `$MeshFormat`"));
-                }
-                if tet_tags.is_some() {
-                    return Err(r.err("a second `$Elements` section"));
-                }
                 let per_elem = if r.binary { 2 * r.size_bytes } else { 4 };
-                let blocks =
-                    r.count("block count", if r.binary { 12 + r.size_bytes } else { 8 })?;
-                let total = r.count("element count", per_elem)?;
-                let _min_tag = r.size("the smallest tag")?;
-                let _max_tag = r.size("the largest tag")?;
+                let (blocks, total) =
+                    r.section_header("$Elements", format, tet_tags.is_some(), "element", per_elem)?;
                 let mut tets = Vec::new();
                 let mut seen = 0usize;
                 for _ in 0..blocks {

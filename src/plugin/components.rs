@@ -107,8 +107,9 @@ pub enum FailedPhase {
     FreeMotion,
 }
 
-/// Marks a body whose step failed: it was put back to its state at the
-/// start of that step, and the pipeline leaves it alone (it does not move,
+/// Marks a body whose step failed: it kept its state of the start of that
+/// step (a failing phase changes no position or velocity), and the pipeline
+/// leaves it alone (it does not move,
 /// and takes part in no contact) until this component is removed. To go on,
 /// fix the cause (its forces, settings or state, `set_state` to start over)
 /// and remove the component; the other bodies never stop.

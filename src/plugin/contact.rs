@@ -152,15 +152,24 @@ fn contact_failed(
     });
 }
 
-fn listed_present(
-    present: bool,
+/// Whether this step's contact response goes on: it is active, and `present`
+/// (every entity the solver listed still exists). A listed entity that has
+/// gone ends the response for this step, counted, logged and sent as a
+/// [`SoftBodyError`].
+fn still_active(
+    contacts: &mut SoftTissueContacts,
+    present: impl FnOnce(&SoftTissueContacts) -> bool,
     diag: &mut SoftTissueDiagnostics,
     messages: &mut MessageWriter<SoftBodyError>,
 ) -> bool {
-    if !present {
-        diag.errors += 1;
+    if !contacts.active {
+        return false;
+    }
+    if !present(contacts) {
+        contacts.active = false;
         let error =
             SoftTissueError::Interrupted("a body or tool was removed during the contact phases");
+        diag.errors += 1;
         warn!("{error}; the step's contact response is skipped");
         messages.write(SoftBodyError {
             entity: None,
@@ -168,7 +177,7 @@ fn listed_present(
             error,
         });
     }
-    present
+    contacts.active
 }
 
 /// The GPU compliance builder, created once a render device exists.
@@ -204,16 +213,9 @@ fn compliance(
     #[cfg(feature = "gpu")] gpu: Option<ResMut<GpuBackend>>,
     mut messages: MessageWriter<SoftBodyError>,
 ) {
-    if !contacts.active {
-        return;
-    }
     let contacts = &mut *contacts;
-    if !listed_present(
-        all_present(&bodies, &contacts.bodies),
-        &mut diag,
-        &mut messages,
-    ) {
-        contacts.active = false;
+    let present = |c: &SoftTissueContacts| all_present(&bodies, &c.bodies);
+    if !still_active(contacts, present, &mut diag, &mut messages) {
         return;
     }
     let mut b = BodyViewMut {
@@ -256,16 +258,9 @@ fn lcp(
     mut diag: ResMut<SoftTissueDiagnostics>,
     mut messages: MessageWriter<SoftBodyError>,
 ) {
-    if !contacts.active {
-        return;
-    }
     let contacts = &mut *contacts;
-    if !listed_present(
-        all_present(&bodies, &contacts.bodies),
-        &mut diag,
-        &mut messages,
-    ) {
-        contacts.active = false;
+    let present = |c: &SoftTissueContacts| all_present(&bodies, &c.bodies);
+    if !still_active(contacts, present, &mut diag, &mut messages) {
         return;
     }
     let b = BodyView {
@@ -292,12 +287,9 @@ fn run_mutating_phase(
         &mut ToolViewMut,
     ) -> crate::error::Result<()>,
 ) {
-    if !contacts.active {
-        return;
-    }
-    let present = all_present(bodies, &contacts.bodies) && all_present(tools, &contacts.tools);
-    if !listed_present(present, diag, messages) {
-        contacts.active = false;
+    let present =
+        |c: &SoftTissueContacts| all_present(bodies, &c.bodies) && all_present(tools, &c.tools);
+    if !still_active(contacts, present, diag, messages) {
         return;
     }
     let mut b = BodyViewMut {

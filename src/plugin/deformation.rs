@@ -13,7 +13,6 @@ use super::components::{
 use super::config::SoftTissueConfig;
 use super::diagnostics::SoftTissueDiagnostics;
 use super::sets::SoftTissueSystems;
-use crate::body::DeformableBody;
 use crate::error::SoftTissueError;
 use crate::math::Vec3 as DVec3;
 use crate::scene::phases;
@@ -110,22 +109,15 @@ struct Failures<'w, 's> {
 }
 
 impl Failures<'_, '_> {
-    /// Marks `e` failed in `phase` (see [`SoftBodyFailed`]): back to its
-    /// state at the start of the step, reported, left alone until the user
-    /// clears it.
-    fn fail(
-        &mut self,
-        e: Entity,
-        body: &mut DeformableBody,
-        phase: FailedPhase,
-        error: SoftTissueError,
-    ) {
-        body.restore_checkpoint();
+    /// Marks `e` failed in `phase` (see [`SoftBodyFailed`]): reported, left
+    /// alone until the user clears it. A phase that fails leaves the body in
+    /// its state at the start of the step (see [`crate::body`]).
+    fn fail(&mut self, e: Entity, phase: FailedPhase, error: SoftTissueError) {
         self.diag.errors += 1;
         self.diag.failed_bodies += 1;
         warn!(
-            "soft body {e}: {phase:?} failed: {error}; it is back at its state at the start of \
-             the step and left alone until `SoftBodyFailed` is removed"
+            "soft body {e}: {phase:?} failed: {error}; it keeps its state at the start of the \
+             step and is left alone until `SoftBodyFailed` is removed"
         );
         self.commands.entity(e).insert(SoftBodyFailed {
             phase,
@@ -151,10 +143,9 @@ fn assemble(
     f.diag.begin_step();
     for (e, mut body) in &mut bodies {
         let body = &mut body.0;
-        body.checkpoint();
         if let Err(err) = phases::assemble(body, &contacts.solver, contacts.active, config.timestep)
         {
-            f.fail(e, body, FailedPhase::Assemble, err);
+            f.fail(e, FailedPhase::Assemble, err);
             continue;
         }
         let r = *body.report();
@@ -169,7 +160,7 @@ fn factorize(mut bodies: Query<Live, Without<SoftBodyFailed>>, mut f: Failures) 
         let body = &mut body.0;
         let failures = body.report().preconditioner.failures;
         if let Err(err) = phases::factorize(body) {
-            f.fail(e, body, FailedPhase::Factorize, err);
+            f.fail(e, FailedPhase::Factorize, err);
             continue;
         }
         let r = body.report();
@@ -204,7 +195,7 @@ fn free_motion(mut bodies: Query<Live, Without<SoftBodyFailed>>, mut f: Failures
                 f.diag.cg_unconverged += usize::from(!cg.converged);
             }
             Err(err) => {
-                f.fail(e, body, FailedPhase::FreeMotion, err);
+                f.fail(e, FailedPhase::FreeMotion, err);
             }
         }
     }

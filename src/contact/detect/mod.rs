@@ -162,18 +162,6 @@ fn pair(state: &mut [DetectBody], a: usize, b: usize) -> (&DetectBody, &mut Dete
     }
 }
 
-fn surface_aabb(tris: &[[usize; 3]], x: &[Vec3], margin: f64) -> (Vec3, Vec3) {
-    let mut lo = Vec3::repeat(f64::INFINITY);
-    let mut hi = Vec3::repeat(f64::NEG_INFINITY);
-    for t in tris {
-        for &v in t {
-            lo = lo.inf(&x[v]);
-            hi = hi.sup(&x[v]);
-        }
-    }
-    (lo.add_scalar(-margin), hi.add_scalar(margin))
-}
-
 /// Surface vertices of body `a` against the surface of body `b`.
 fn vertex_triangle<B: Bodies + ?Sized>(
     state: &mut [DetectBody],
@@ -197,7 +185,12 @@ fn vertex_triangle<B: Bodies + ?Sized>(
         return;
     };
     let tris = &slot_b.tris;
-    let bbox = surface_aabb(tris, xb, margin + max_extra);
+    // The bounds of `b`'s surface (kept by `update_bounds`), grown by the band.
+    let grow = margin + max_extra;
+    let bbox = (
+        slot_b.aabb.0.add_scalar(-grow),
+        slot_b.aabb.1.add_scalar(grow),
+    );
     // Far enough to reach the surface from anywhere inside `b`.
     let reach = (bbox.1 - bbox.0).norm();
     for &v in &bodies.body(a).surface().vertices {
