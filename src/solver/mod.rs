@@ -118,17 +118,38 @@ pub enum PreconditionerKind {
     /// `LDLᵀ` refreshed by a background worker with the rotation warp.
     #[default]
     Async,
+    /// `Async` made deterministic, for reproducible comparisons: the factor of
+    /// the matrix handed over at step `n` is swapped in at step `n + lag`
+    /// exactly (the stepping thread waits for the worker if it is not done,
+    /// and keeps a finished factor until then). Results then do not depend on
+    /// thread timing, as long as the worker's turn is not held up by other
+    /// bodies' factorizations (one body, or fewer bodies than cores).
+    AsyncLagged {
+        /// Steps between handing a matrix over and using its factor (≥ 1).
+        lag: u32,
+    },
 }
 
 impl PreconditionerKind {
     /// Whether this kind keeps an `LDLᵀ` factor.
     pub fn has_factor(&self) -> bool {
-        matches!(self, Self::Exact | Self::Periodic { .. } | Self::Async)
+        matches!(
+            self,
+            Self::Exact | Self::Periodic { .. } | Self::Async | Self::AsyncLagged { .. }
+        )
+    }
+
+    /// Whether a background worker makes the factor.
+    pub fn is_async(&self) -> bool {
+        matches!(self, Self::Async | Self::AsyncLagged { .. })
     }
 
     /// Whether the factor is warped by node rotations.
     pub fn needs_rotations(&self) -> bool {
-        matches!(self, Self::Periodic { .. } | Self::Async)
+        matches!(
+            self,
+            Self::Periodic { .. } | Self::Async | Self::AsyncLagged { .. }
+        )
     }
 }
 
@@ -212,14 +233,21 @@ impl PreconditionerState {
                 reason: "refresh period must be ≥ 1 step",
             });
         }
+        if let PreconditionerKind::AsyncLagged { lag: 0 } = kind {
+            return Err(SoftTissueError::InvalidParameter {
+                name: "AsyncLagged.lag",
+                value: 0.0,
+                reason: "lag must be ≥ 1 step",
+            });
+        }
         let n = a.n();
         let symbolic = if kind.has_factor() {
             Some(Arc::new(LdltSymbolic::new(&a.pattern)?))
         } else {
             None
         };
-        let worker = match (&symbolic, kind) {
-            (Some(s), PreconditionerKind::Async) => Some(AsyncFactorizer::new(a, s)),
+        let worker = match &symbolic {
+            Some(s) if kind.is_async() => Some(AsyncFactorizer::new(a, s)),
             _ => None,
         };
         Ok(Self {
@@ -351,12 +379,21 @@ impl PreconditionerState {
                     self.factorize_now(a, rotations, step)?;
                 }
             }
-            PreconditionerKind::Async => {
+            PreconditionerKind::Async | PreconditionerKind::AsyncLagged { .. } => {
+                // `AsyncLagged`: take the factor at `submitted + lag` exactly,
+                // waiting for it if need be; `Async`: whenever it is done.
+                let take = |w: &mut AsyncFactorizer| match self.kind {
+                    PreconditionerKind::AsyncLagged { lag } => (w.in_flight()
+                        && step >= w.submitted_step() + lag as u64)
+                        .then(|| w.try_take(true))
+                        .flatten(),
+                    _ => w.try_take(false),
+                };
                 if self.state.is_none() {
                     // First step: blocking is allowed.
                     self.factorize_now(a, rotations, step)?;
                 } else if let Some(w) = &mut self.worker
-                    && let Some(mut done) = w.try_take(false)
+                    && let Some(mut done) = take(w)
                 {
                     self.stats.factor_seconds = done.seconds;
                     let stale = self.state.as_ref().is_some_and(|st| done.step < st.step);

@@ -75,6 +75,7 @@ pub struct AsyncFactorizer {
     /// Test hook: the thread exits at its next job.
     stop: Arc<AtomicBool>,
     in_flight: bool,
+    submitted_step: u64,
     pub(super) spare: Option<(Vec<Mat3>, Vec<Mat3>, LdltFactor)>,
     pub(super) hint: Vec<u32>,
 }
@@ -177,6 +178,7 @@ impl AsyncFactorizer {
             fail,
             stop,
             in_flight: false,
+            submitted_step: 0,
             spare,
             hint: Vec::new(),
         }
@@ -212,6 +214,11 @@ impl AsyncFactorizer {
     /// Whether a factorization is running.
     pub fn in_flight(&self) -> bool {
         self.in_flight
+    }
+
+    /// Step of the matrix the running (or last) factorization was handed.
+    pub fn submitted_step(&self) -> u64 {
+        self.submitted_step
     }
 
     pub(super) fn try_take(&mut self, block: bool) -> Option<Done> {
@@ -291,6 +298,7 @@ impl AsyncFactorizer {
         };
         if tx.send(job).is_ok() {
             self.in_flight = true;
+            self.submitted_step = step;
         } else {
             IN_FLIGHT.fetch_sub(1, Ordering::SeqCst);
         }
