@@ -623,6 +623,23 @@ impl DeformableBody {
         Ok(report)
     }
 
+    /// Factorizes this step's matrix now, on the stepping thread, for a
+    /// preconditioner whose factor lags the matrix (`Periodic`, `Async`,
+    /// `AsyncLagged`); for the other kinds does nothing and returns `false`.
+    /// The contact correction calls it when the lagging factor's correction
+    /// would not be consistent with the matrix
+    /// ([`crate::contact::ContactSettings::consistency_tolerance`]). Counted in
+    /// [`crate::solver::PreconditionerStats::rescues`].
+    pub fn refactor_preconditioner_now(&mut self) -> Result<bool> {
+        // After the free motion the step index already names the next step.
+        let step = self.step_index.saturating_sub(1);
+        let made = self
+            .precond
+            .refactor_now(&self.matrix, &self.node_rot, step)?;
+        self.report.preconditioner = self.precond.stats();
+        Ok(made)
+    }
+
     /// Runs assembly, preconditioner update and free motion: one full step without contacts.
     pub fn step(&mut self, h: f64) -> Result<StepReport> {
         self.assemble(h)?;

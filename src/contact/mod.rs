@@ -99,7 +99,8 @@ pub struct ContactSolver {
     lambda: Vec<f64>,
     lcp_delta: Vec<f64>,
     warm: WarmStart,
-    dx: Vec<Vec3>,
+    dx: Vec<Vec<Vec3>>,
+    stale: Vec<usize>,
     /// Per body index, per node: the contact force of the step, all passes.
     node_forces: Vec<Vec<Vec3>>,
     report: ContactReport,
@@ -441,13 +442,39 @@ impl ContactSolver {
         pass: PassKind,
     ) -> Result<()> {
         let t0 = Instant::now();
-        let per = correct::PerBody {
+        // Refinement passes correct what the first left, with small forces:
+        // only the first pass is checked.
+        let tolerance = match pass {
+            PassKind::First => self.settings.consistency_tolerance,
+            PassKind::Refine => f64::INFINITY,
+        };
+        let mut per = correct::PerBody {
             compliance: &mut self.compliance,
             modes: &self.modes,
             predictions: &mut self.predict,
             entries: &self.jac.entries,
         };
-        correct::apply(bodies, per, self.h, &self.lambda, &mut self.dx)?;
+        correct::compute(
+            bodies,
+            &mut per,
+            self.h,
+            &self.lambda,
+            tolerance,
+            &mut self.dx,
+            &mut self.stale,
+        )?;
+        self.report.correct += t0.elapsed().as_secs_f64();
+        if !self.stale.is_empty() {
+            self.redo_with_current_factor(bodies, pass)?;
+        }
+        let t0 = Instant::now();
+        let mut per = correct::PerBody {
+            compliance: &mut self.compliance,
+            modes: &self.modes,
+            predictions: &mut self.predict,
+            entries: &self.jac.entries,
+        };
+        correct::apply(bodies, &mut per, &self.dx);
         for (forces, entries) in self.node_forces.iter_mut().zip(&self.jac.entries) {
             for e in entries {
                 if let Some(f) = forces.get_mut(e.node as usize) {
@@ -456,6 +483,46 @@ impl ContactSolver {
             }
         }
         correct::tool_reactions(tools, &self.contacts, pass);
+        self.report.correct += t0.elapsed().as_secs_f64();
+        Ok(())
+    }
+
+    /// The rescue of [`Self::correct`]: the bodies in `self.stale` get a factor
+    /// of their current matrix, and the pass's `W`, LCP and correction are
+    /// redone (on the CPU) with it; the new correction is consistent by
+    /// construction.
+    fn redo_with_current_factor<B: BodiesMut + ?Sized>(
+        &mut self,
+        bodies: &mut B,
+        pass: PassKind,
+    ) -> Result<()> {
+        let stale = std::mem::take(&mut self.stale);
+        for &bi in &stale {
+            if bodies.body_mut(bi).refactor_preconditioner_now()? {
+                self.compliance[bi].drop_snapshot();
+                self.report.consistency_refactors += 1;
+            }
+        }
+        self.stale = stale;
+        self.build_compliance(bodies, pass, None)?;
+        self.solve_lcp(&*bodies, pass);
+        let t0 = Instant::now();
+        let mut per = correct::PerBody {
+            compliance: &mut self.compliance,
+            modes: &self.modes,
+            predictions: &mut self.predict,
+            entries: &self.jac.entries,
+        };
+        let mut ignore = Vec::new();
+        correct::compute(
+            bodies,
+            &mut per,
+            self.h,
+            &self.lambda,
+            f64::INFINITY,
+            &mut self.dx,
+            &mut ignore,
+        )?;
         self.report.correct += t0.elapsed().as_secs_f64();
         Ok(())
     }

@@ -47,6 +47,21 @@ pub struct ContactSettings {
     /// for the shift exactly (`δ₀ = gap − H·shift`), so the LCP solves the
     /// same problem at a better-chosen linearization point. On by default.
     pub predict: bool,
+    /// How far the correction of a body whose factor lags its matrix
+    /// (`Factorized` compliance with a `Periodic`, `Async` or `AsyncLagged`
+    /// preconditioner) may stray from the matrix before the factor is
+    /// refreshed on the spot. The correction `Δx = h² P⁻¹ Hᵀ λ` stores the
+    /// energy `Δxᵀ A Δx / 2` in the tissue, while the LCP, which saw
+    /// `W = h² H P⁻¹ Hᵀ`, accounted for `Δxᵀ P Δx / 2 = h² λᵀ H Δx / 2`. Their
+    /// ratio is 1 when `P = A`; with an old factor warped by node rotations it
+    /// is far from 1 where the rotations vary across the body (the warp then
+    /// twists the soft rigid-body modes of a free body into stiff deformation),
+    /// and the correction shoots the tissue off. When the ratio leaves
+    /// `[1 / (1 + tol), 1 + tol]` the body's matrix is factorized now and the
+    /// pass's `W`, LCP and correction are redone with it (counted in
+    /// [`super::ContactReport::consistency_refactors`]). Default 0.25;
+    /// `f64::INFINITY` never refreshes.
+    pub consistency_tolerance: f64,
 }
 
 impl Default for ContactSettings {
@@ -61,6 +76,7 @@ impl Default for ContactSettings {
             penetration_tolerance: 1e-6,
             factor_reuse: 0,
             predict: true,
+            consistency_tolerance: 0.1,
         }
     }
 }
@@ -87,6 +103,13 @@ impl ContactSettings {
             });
         }
         check_positive("penetration_tolerance", self.penetration_tolerance)?;
+        if self.consistency_tolerance.is_nan() || self.consistency_tolerance <= 0.0 {
+            return Err(SoftTissueError::InvalidParameter {
+                name: "consistency_tolerance",
+                value: self.consistency_tolerance,
+                reason: "must be positive (f64::INFINITY: never refresh)",
+            });
+        }
         if self.max_passes == 0 {
             return Err(SoftTissueError::InvalidParameter {
                 name: "max_passes",

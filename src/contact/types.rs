@@ -94,6 +94,10 @@ pub struct ContactReport {
     pub pairs_tested: usize,
     /// Contact passes run (see [`super::ContactSettings::max_passes`]).
     pub passes: usize,
+    /// Bodies whose lagging factor was refreshed in this step because its
+    /// correction strayed from the matrix
+    /// ([`super::ContactSettings::consistency_tolerance`]).
+    pub consistency_refactors: usize,
     /// Deepest penetration found by the last detection, metres (0 if none).
     pub max_penetration: f64,
     /// Deepest penetration found by the first detection of the step, metres:

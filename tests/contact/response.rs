@@ -376,3 +376,56 @@ fn no_friction_rows_when_mu_is_zero_and_no_work_without_contact() {
     let r = scene.step(0.01).unwrap();
     assert_eq!((r.contacts, r.pairs_tested, r.rows, r.solves), (0, 0, 0, 0));
 }
+
+/// A lagging factor that does not fit the matrix (here made at h = 1 s, ten
+/// thousand times stiffer than the matrix of an h = 0.01 s step) makes a
+/// correction that strays from it: the contact phase factorizes the current
+/// matrix on the spot and redoes the pass (counted in the report and in the
+/// preconditioner's rescues). With the check off nothing is refreshed.
+#[test]
+fn a_correction_that_strays_from_the_matrix_refreshes_the_factor() {
+    for (tolerance, refresh) in [(0.1, true), (f64::INFINITY, false)] {
+        let mut body = based_lens(6, PreconditionerKind::Periodic { every: 1_000_000 });
+        body.step(1.0).unwrap();
+        let rescues = body.report().preconditioner.rescues;
+        let mut scene = Scene::new(ContactSettings {
+            consistency_tolerance: tolerance,
+            ..Default::default()
+        })
+        .unwrap();
+        scene.add_body(body);
+        scene.add_tool(
+            RigidTool::new(
+                ToolShape::Sphere { radius: 3e-3 },
+                at(0.0, 0.0, 2.25e-3 + 3e-3 - 2e-4),
+            )
+            .unwrap(),
+        );
+        let r = scene.step(0.01).unwrap();
+        assert!(r.contacts > 0);
+        let p = scene.bodies[0].report().preconditioner;
+        assert_eq!(
+            r.consistency_refactors > 0,
+            refresh,
+            "tolerance {tolerance}: {} refreshes",
+            r.consistency_refactors
+        );
+        assert_eq!(p.rescues > rescues, refresh);
+        if refresh {
+            assert_eq!(p.factor_age, 0, "the refreshed factor is of this step");
+            // The redone pass is consistent: no penetration left.
+            assert!(penetration(&scene) <= 1e-6, "{:e}", penetration(&scene));
+        }
+    }
+    // The tolerance is validated.
+    for bad in [0.0, -1.0, f64::NAN] {
+        assert!(
+            ContactSettings {
+                consistency_tolerance: bad,
+                ..Default::default()
+            }
+            .validate()
+            .is_err()
+        );
+    }
+}

@@ -43,6 +43,8 @@ struct Snapshot {
     warp: Vec<Mat3>,
     version: u64,
     step: u64,
+    /// Take the preconditioner's factor at the next refresh, whatever its age.
+    expired: bool,
 }
 
 /// Where a body's compliance factor comes from, kept between steps: the
@@ -149,6 +151,12 @@ impl FactorSource {
         Ok(())
     }
 
+    /// The next refresh takes the preconditioner's factor (see
+    /// [`super::BodyCompliance::drop_snapshot`]).
+    pub(super) fn drop_snapshot(&mut self) {
+        self.snap.expired = true;
+    }
+
     /// Updates the snapshot from the body's preconditioner factor when it is
     /// older than `reuse` steps (or absent), and recomputes its rotation warp.
     fn refresh_snapshot(&mut self, body: &DeformableBody) -> Result<()> {
@@ -161,9 +169,11 @@ impl FactorSource {
             None => true,
             Some(f) => {
                 !Arc::ptr_eq(&f.symbolic, &st.factor.symbolic)
-                    || (snap.version != st.version && body.step_index() >= snap.step + self.reuse)
+                    || (snap.version != st.version
+                        && (snap.expired || body.step_index() >= snap.step + self.reuse))
             }
         };
+        snap.expired = false;
         if stale {
             match &mut snap.factor {
                 Some(f) if Arc::ptr_eq(&f.symbolic, &st.factor.symbolic) => {

@@ -127,6 +127,12 @@ impl BodyCompliance {
         self.cache.key = None;
     }
 
+    /// Drops the factor snapshot kept for [`crate::contact::ContactSettings::factor_reuse`],
+    /// so that the next build takes the preconditioner's newest factor.
+    pub fn drop_snapshot(&mut self) {
+        self.source.drop_snapshot();
+    }
+
     /// Forward solves (node columns, or full solves for `DenseRows`) in the last build.
     pub fn solves(&self) -> usize {
         self.cache.solves
