@@ -134,6 +134,9 @@ pub enum SoftTissueError {
     /// the contact phases listed was removed part way through the step).
     #[error("step interrupted: {0}")]
     Interrupted(&'static str),
+    /// The accuracy study could not run or write its outputs.
+    #[error("accuracy study: {0}")]
+    Study(String),
     /// The GPU path failed (device, shader or validation error).
     #[error("GPU compliance: {0}")]
     Gpu(String),

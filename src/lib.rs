@@ -6,7 +6,8 @@
 //!
 //! - **The numerical core** — [`math`], [`error`] → [`mesh`] → [`material`] →
 //!   [`fem`] → [`solver`] → [`body`] → [`contact`] → [`scene`] (each module
-//!   uses only those before it; [`scenes`] builds ready-made scenes on top). It
+//!   uses only those before it; [`scenes`] builds ready-made scenes on top,
+//!   and [`study`] measures what accuracy costs in time on any of them). It
 //!   has no Bevy types, works in `f64`, takes its scratch memory explicitly and
 //!   allocates nothing inside per-step loops. It builds without Bevy
 //!   (`--no-default-features`) and can be used and tested on its own.
@@ -57,6 +58,7 @@ pub mod plugin;
 pub mod scene;
 pub mod scenes;
 pub mod solver;
+pub mod study;
 
 #[cfg(feature = "bevy")]
 pub use plugin::{SoftTissuePlugins, SoftTissueSystems};
