@@ -10,12 +10,6 @@
 use bevy_soft_tissue::core_prelude::*;
 mod common;
 use common::bench::{lens_body, pole_contacts};
-use std::time::Instant;
-
-fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(f64::total_cmp);
-    v[v.len() / 2]
-}
 
 fn main() -> Result<()> {
     // The paper-size lens; its factor is never refreshed, so every build uses the same one.
@@ -30,40 +24,12 @@ fn main() -> Result<()> {
         "{:>8} {:>6} {:>12} {:>16} {:>15} {:>9}",
         "contacts", "rows", "DenseRows", "Factorized cold", "Factorized warm", "speed-up"
     );
-    for n in [30, 60, 90, 130, 260] {
+    let counts = [30, 60, 90, 130, 260];
+    let rows =
+        bevy_soft_tissue::study::compliance::timings(&mut body, &counts, 7, None, &mut |_| {})?;
+    for t in rows {
+        let n = t.contacts;
         let cs = pole_contacts(&body, n, v3(0.0, 0.0, -1.0), 0.3);
-        let mut dense = Vec::new();
-        let mut cold = Vec::new();
-        let mut warm = Vec::new();
-        // One solver per mode, reused as in a running scene (scratch memory kept);
-        // `forget_columns` drops the cached columns as a new factor does.
-        // Reuse 0: W from the body's current factor (no snapshot copy).
-        let solver = |mode| {
-            ContactSolver::new(ContactSettings {
-                compliance: mode,
-                factor_reuse: 0,
-                ..Default::default()
-            })
-        };
-        let mut dense_solver = solver(ComplianceMode::DenseRows)?;
-        let mut fact_solver = solver(ComplianceMode::Factorized)?;
-        for _ in 0..7 {
-            dense_solver.set_contacts(&cs, &[&body], 0.02)?;
-            let t0 = Instant::now();
-            dense_solver.build_compliance(&mut [&mut body], PassKind::First, None)?;
-            dense.push(t0.elapsed().as_secs_f64() * 1e3);
-            // New factor: every node column is solved.
-            fact_solver.set_contacts(&cs, &[&body], 0.02)?;
-            fact_solver.forget_columns();
-            let t0 = Instant::now();
-            fact_solver.build_compliance(&mut [&mut body], PassKind::First, None)?;
-            cold.push(t0.elapsed().as_secs_f64() * 1e3);
-            // Same factor, same nodes: columns and Gram blocks come from the cache.
-            fact_solver.set_contacts(&cs, &[&body], 0.02)?;
-            let t0 = Instant::now();
-            fact_solver.build_compliance(&mut [&mut body], PassKind::First, None)?;
-            warm.push(t0.elapsed().as_secs_f64() * 1e3);
-        }
         if std::env::var("PATH_STATS").is_ok() {
             let sym = body.preconditioner().symbolic().expect("factor");
             let mut union = std::collections::HashSet::new();
@@ -107,7 +73,7 @@ fn main() -> Result<()> {
                 sym.nnz_blocks()
             );
         }
-        let (d, c, w) = (median(dense), median(cold), median(warm));
+        let (d, c, w) = (t.dense_rows, t.factorized_cold, t.factorized_warm);
         println!(
             "{:>8} {:>6} {:>12.3} {:>16.3} {:>15.3} {:>8.1}x",
             n,

@@ -173,5 +173,5 @@ fn power_law_fit_pareto_front_and_knee() {
     // A sharp corner at (2, 1e-8) between a steep and a flat stretch.
     let pts = [(1.0, 1e-2), (2.0, 1e-8), (4.0, 5e-9), (8.0, 2e-9)];
     let front = study::pareto_front(&pts);
-    assert_eq!(output::knee(&pts, &front), Some(1));
+    assert_eq!(study::knee(&pts, &front), Some(1));
 }

@@ -441,40 +441,20 @@ impl ContactSolver {
         tools: &mut T,
         pass: PassKind,
     ) -> Result<()> {
-        let t0 = Instant::now();
         // Refinement passes correct what the first left, with small forces:
         // only the first pass is checked.
         let tolerance = match pass {
             PassKind::First => self.settings.consistency_tolerance,
             PassKind::Refine => f64::INFINITY,
         };
-        let mut per = correct::PerBody {
-            compliance: &mut self.compliance,
-            modes: &self.modes,
-            predictions: &mut self.predict,
-            entries: &self.jac.entries,
-        };
-        correct::compute(
-            bodies,
-            &mut per,
-            self.h,
-            &self.lambda,
-            tolerance,
-            &mut self.dx,
-            &mut self.stale,
-        )?;
-        self.report.correct += t0.elapsed().as_secs_f64();
+        self.compute_corrections(bodies, tolerance)?;
         if !self.stale.is_empty() {
             self.redo_with_current_factor(bodies, pass)?;
         }
         let t0 = Instant::now();
-        let mut per = correct::PerBody {
-            compliance: &mut self.compliance,
-            modes: &self.modes,
-            predictions: &mut self.predict,
-            entries: &self.jac.entries,
-        };
-        correct::apply(bodies, &mut per, &self.dx);
+        let dx = std::mem::take(&mut self.dx);
+        correct::apply(bodies, &mut self.per_body(), &dx);
+        self.dx = dx;
         for (forces, entries) in self.node_forces.iter_mut().zip(&self.jac.entries) {
             for e in entries {
                 if let Some(f) = forces.get_mut(e.node as usize) {
@@ -487,6 +467,35 @@ impl ContactSolver {
         Ok(())
     }
 
+    fn per_body(&mut self) -> correct::PerBody<'_> {
+        correct::PerBody {
+            compliance: &mut self.compliance,
+            modes: &self.modes,
+            predictions: &mut self.predict,
+            entries: &self.jac.entries,
+        }
+    }
+
+    /// Every body's correction of this pass into `self.dx`; the bodies whose
+    /// correction strays beyond `tolerance` into `self.stale`.
+    fn compute_corrections<B: BodiesMut + ?Sized>(
+        &mut self,
+        bodies: &mut B,
+        tolerance: f64,
+    ) -> Result<()> {
+        let t0 = Instant::now();
+        let (mut dx, mut stale) = (
+            std::mem::take(&mut self.dx),
+            std::mem::take(&mut self.stale),
+        );
+        let (h, lambda) = (self.h, std::mem::take(&mut self.lambda));
+        let mut per = self.per_body();
+        let res = correct::compute(bodies, &mut per, h, &lambda, tolerance, &mut dx, &mut stale);
+        (self.dx, self.stale, self.lambda) = (dx, stale, lambda);
+        self.report.correct += t0.elapsed().as_secs_f64();
+        res
+    }
+
     /// The rescue of [`Self::correct`]: the bodies in `self.stale` get a factor
     /// of their current matrix, and the pass's `W`, LCP and correction are
     /// redone (on the CPU) with it; the new correction is consistent by
@@ -496,35 +505,16 @@ impl ContactSolver {
         bodies: &mut B,
         pass: PassKind,
     ) -> Result<()> {
-        let stale = std::mem::take(&mut self.stale);
-        for &bi in &stale {
+        for i in 0..self.stale.len() {
+            let bi = self.stale[i];
             if bodies.body_mut(bi).refactor_preconditioner_now()? {
                 self.compliance[bi].drop_snapshot();
                 self.report.consistency_refactors += 1;
             }
         }
-        self.stale = stale;
         self.build_compliance(bodies, pass, None)?;
         self.solve_lcp(&*bodies, pass);
-        let t0 = Instant::now();
-        let mut per = correct::PerBody {
-            compliance: &mut self.compliance,
-            modes: &self.modes,
-            predictions: &mut self.predict,
-            entries: &self.jac.entries,
-        };
-        let mut ignore = Vec::new();
-        correct::compute(
-            bodies,
-            &mut per,
-            self.h,
-            &self.lambda,
-            f64::INFINITY,
-            &mut self.dx,
-            &mut ignore,
-        )?;
-        self.report.correct += t0.elapsed().as_secs_f64();
-        Ok(())
+        self.compute_corrections(bodies, f64::INFINITY)
     }
 
     /// Runs the first pass (detection, compliance, LCP, correction), then the

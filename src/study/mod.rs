@@ -523,3 +523,27 @@ pub fn pareto_front(points: &[(f64, f64)]) -> Vec<usize> {
     }
     front
 }
+
+/// Penetration above which a variant is not a valid choice: kept off the
+/// Pareto front (and drawn hollow), metres.
+pub const PARETO_MAX_PENETRATION: f64 = 1e-5;
+
+/// The knee of a Pareto front of `(cost, error)` points, both on log
+/// scales: the front point farthest from the line through the front's
+/// ends (where buying more accuracy starts to cost much more time).
+pub fn knee(points: &[(f64, f64)], front: &[usize]) -> Option<usize> {
+    if front.len() < 3 {
+        return front.first().copied();
+    }
+    let l = |i: usize| (points[i].0.ln(), points[i].1.max(1e-300).ln());
+    let (a, b) = (l(front[0]), l(front[front.len() - 1]));
+    let (dx, dy) = (b.0 - a.0, b.1 - a.1);
+    let norm = (dx * dx + dy * dy).sqrt().max(1e-300);
+    front.iter().copied().max_by(|&i, &j| {
+        let d = |k: usize| {
+            let p = l(k);
+            ((p.0 - a.0) * dy - (p.1 - a.1) * dx).abs() / norm
+        };
+        d(i).total_cmp(&d(j))
+    })
+}

@@ -11,12 +11,11 @@
 use std::path::Path;
 use std::sync::Once;
 
-use plotters::coord::Shift;
+use plotters::coord::{CoordTranslate, Shift};
 use plotters::prelude::*;
 
 use super::full::StudyReport;
-use super::output::{PARETO_MAX_PENETRATION, knee};
-use super::{CaseResult, pareto_front};
+use super::{CaseResult, PARETO_MAX_PENETRATION, knee, pareto_front};
 use crate::error::{Result, SoftTissueError};
 
 /// Errors below this are drawn at this value on log scales (the `exact`
@@ -223,6 +222,34 @@ pub fn pareto(case: &CaseResult, path: &Path) -> Result<()> {
     root.present().map_err(pe)
 }
 
+/// Lines with dots and a legend entry each; empty series are left out.
+fn draw_lines<'a, DB, CT>(
+    chart: &mut ChartContext<'a, DB, CT>,
+    series: Vec<(&str, Vec<(f64, f64)>)>,
+) -> Result<()>
+where
+    DB: DrawingBackend + 'a,
+    CT: CoordTranslate<From = (f64, f64)>,
+{
+    for (i, (name, pts)) in series.into_iter().enumerate() {
+        if pts.is_empty() {
+            continue;
+        }
+        let color = Palette99::pick(i).to_rgba();
+        chart
+            .draw_series(LineSeries::new(pts.clone(), color.stroke_width(2)))
+            .map_err(pe)?
+            .label(name)
+            .legend(move |(x, y)| {
+                PathElement::new(vec![(x, y), (x + 18, y)], color.stroke_width(2))
+            });
+        chart
+            .draw_series(pts.into_iter().map(|p| Circle::new(p, 4, color.filled())))
+            .map_err(pe)?;
+    }
+    Ok(())
+}
+
 /// Fig. 4: compliance build time against contacts.
 pub fn compliance(report: &StudyReport, path: &Path) -> Result<()> {
     font();
@@ -262,26 +289,17 @@ pub fn compliance(report: &StudyReport, path: &Path) -> Result<()> {
         ("Exact (factorize + build)", |c| Some(c.exact)),
         ("GPU", |c| c.backend),
     ];
-    for (i, (name, get)) in series.iter().enumerate() {
-        let pts: Vec<(f64, f64)> = t
-            .iter()
-            .filter_map(|c| get(c).map(|v| (c.contacts as f64, v.max(LOG_FLOOR))))
-            .collect();
-        if pts.is_empty() {
-            continue;
-        }
-        let color = Palette99::pick(i).to_rgba();
-        chart
-            .draw_series(LineSeries::new(pts.clone(), color.stroke_width(2)))
-            .map_err(pe)?
-            .label(*name)
-            .legend(move |(x, y)| {
-                PathElement::new(vec![(x, y), (x + 18, y)], color.stroke_width(2))
-            });
-        chart
-            .draw_series(pts.into_iter().map(|p| Circle::new(p, 4, color.filled())))
-            .map_err(pe)?;
-    }
+    let lines = series
+        .iter()
+        .map(|(name, get)| {
+            let pts = t
+                .iter()
+                .filter_map(|c| get(c).map(|v| (c.contacts as f64, v.max(LOG_FLOOR))))
+                .collect();
+            (*name, pts)
+        })
+        .collect();
+    draw_lines(&mut chart, lines)?;
     chart
         .configure_series_labels()
         .position(SeriesLabelPosition::UpperLeft)
@@ -322,23 +340,17 @@ pub fn growth(report: &StudyReport, path: &Path) -> Result<()> {
         ("step (Async, no contacts)", |p| p.step_ms),
         ("one LDLT factorization", |p| p.factor_ms),
     ];
-    for (i, (name, get)) in series.iter().enumerate() {
-        let color = Palette99::pick(i).to_rgba();
-        let pts: Vec<(f64, f64)> = g
-            .iter()
-            .map(|p| (p.nodes as f64, get(p).max(LOG_FLOOR)))
-            .collect();
-        chart
-            .draw_series(LineSeries::new(pts.clone(), color.stroke_width(2)))
-            .map_err(pe)?
-            .label(*name)
-            .legend(move |(x, y)| {
-                PathElement::new(vec![(x, y), (x + 18, y)], color.stroke_width(2))
-            });
-        chart
-            .draw_series(pts.into_iter().map(|p| Circle::new(p, 4, color.filled())))
-            .map_err(pe)?;
-    }
+    let lines = series
+        .iter()
+        .map(|(name, get)| {
+            let pts = g
+                .iter()
+                .map(|p| (p.nodes as f64, get(p).max(LOG_FLOOR)))
+                .collect();
+            (*name, pts)
+        })
+        .collect();
+    draw_lines(&mut chart, lines)?;
     chart
         .configure_series_labels()
         .position(SeriesLabelPosition::UpperLeft)
