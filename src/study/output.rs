@@ -17,7 +17,7 @@ use super::full::StudyReport;
 use super::{CaseResult, PARETO_MAX_PENETRATION, PHASES, VariantSummary, knee, pareto_front};
 use crate::error::{Result, SoftTissueError};
 
-/// Every file [`write`] creates (figures only with the `study` feature).
+/// Every file [`write()`] creates (figures only with the `study` feature).
 pub const FILES: [&str; 6] = [
     "results.csv",
     "timeseries.csv",
