@@ -50,7 +50,10 @@
 //! taken queue for one in order (first come, first served): a body that has
 //! just received its factor cannot take the freed slot again ahead of a body
 //! still waiting, so with two bodies on two cores they take turns instead of
-//! one of them starving with an ever older factor.
+//! one of them starving with an ever older factor. A body that stops asking
+//! (it stopped stepping: paused, failed, or kept but unused) leaves the queue
+//! after 250 ms, so it cannot hold up the bodies behind it; it queues again
+//! when it asks.
 //!
 //! ## Contact columns made with the factor
 //! The contact compliance needs, with every new factor, the node columns

@@ -45,9 +45,14 @@ fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
 /// Factorizations running in background workers, all bodies together.
 static IN_FLIGHT: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
 
-/// Factorizers waiting for a background slot, oldest first.
-static WAITING: std::sync::Mutex<std::collections::VecDeque<u64>> =
+/// Factorizers waiting for a background slot, oldest first, with the time
+/// each last asked.
+static WAITING: std::sync::Mutex<std::collections::VecDeque<(u64, Instant)>> =
     std::sync::Mutex::new(std::collections::VecDeque::new());
+/// A waiting factorizer that has not asked for this long is dropped from the
+/// queue: its body stopped stepping (paused, failed, kept but unused), and
+/// it must not hold up the bodies behind it. It queues again when it asks.
+const WAITING_STALE: std::time::Duration = std::time::Duration::from_millis(250);
 /// Identity of each [`AsyncFactorizer`] in [`WAITING`].
 static NEXT_ID: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
 
@@ -258,7 +263,13 @@ impl AsyncFactorizer {
         let limit = max_in_flight();
         {
             let mut waiting = lock(&WAITING);
-            let first = waiting.front().is_none_or(|&w| w == self.id);
+            let now = Instant::now();
+            let id = self.id;
+            waiting.retain(|&(w, t)| w == id || now.duration_since(t) < WAITING_STALE);
+            if let Some(e) = waiting.iter_mut().find(|e| e.0 == id) {
+                e.1 = now;
+            }
+            let first = waiting.front().is_none_or(|&(w, _)| w == id);
             let got = first
                 && IN_FLIGHT
                     .fetch_update(Ordering::SeqCst, Ordering::SeqCst, |n| {
@@ -266,12 +277,12 @@ impl AsyncFactorizer {
                     })
                     .is_ok();
             if !got {
-                if !waiting.contains(&self.id) {
-                    waiting.push_back(self.id);
+                if !waiting.iter().any(|e| e.0 == id) {
+                    waiting.push_back((id, now));
                 }
                 return;
             }
-            if waiting.front() == Some(&self.id) {
+            if waiting.front().map(|e| e.0) == Some(id) {
                 waiting.pop_front();
             }
         }
@@ -307,7 +318,7 @@ impl AsyncFactorizer {
 
 impl Drop for AsyncFactorizer {
     fn drop(&mut self) {
-        lock(&WAITING).retain(|&w| w != self.id);
+        lock(&WAITING).retain(|&(w, _)| w != self.id);
         self.tx = None;
         // Drain a finished job so the worker is not stuck on a full channel.
         while self.rx.try_recv().is_ok() {}
