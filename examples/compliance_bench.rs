@@ -9,13 +9,12 @@
 
 use bevy_soft_tissue::core_prelude::*;
 mod common;
-use common::bench::{lens_body, pole_contacts};
+use bevy_soft_tissue::study::compliance::lens_with_factor;
+use common::bench::pole_contacts;
 
 fn main() -> Result<()> {
     // The paper-size lens; its factor is never refreshed, so every build uses the same one.
-    let mut body = lens_body(PreconditionerKind::Periodic { every: 1_000_000 }, 12)?;
-    body.fix_where(|p| p.z < -2.0e-3);
-    body.step(0.02)?;
+    let mut body = lens_with_factor(12)?;
     println!(
         "lens {} nodes; compliance build time (ms, median of 7), friction on (3 rows/contact)",
         body.num_nodes()

@@ -15,7 +15,8 @@ use bevy_soft_tissue::contact::ComplianceBackend;
 use bevy_soft_tissue::gpu::GpuCompliance;
 use bevy_soft_tissue::prelude::*;
 mod common;
-use common::bench::{lens_body, pole_contacts};
+use bevy_soft_tissue::study::compliance::lens_with_factor;
+use common::bench::pole_contacts;
 
 fn median(mut v: Vec<f64>) -> f64 {
     v.sort_by(f64::total_cmp);
@@ -39,9 +40,7 @@ fn main() -> bevy_soft_tissue::error::Result<()> {
     }
     let mut gpu = GpuCompliance::new(device.clone(), queue.clone(), 0);
     // The paper-size lens; its factor is never refreshed, so every build uses the same one.
-    let mut body = lens_body(PreconditionerKind::Periodic { every: 1_000_000 }, 12)?;
-    body.fix_where(|p| p.z < -2.0e-3);
-    body.step(0.02)?;
+    let mut body = lens_with_factor(12)?;
     println!("compliance build time (ms, median of 5), friction on");
     println!(
         "{:>8} {:>14} {:>10} {:>10}",

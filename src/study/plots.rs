@@ -72,17 +72,11 @@ pub fn error_over_time(case: &CaseResult, path: &Path) -> Result<()> {
             .iter()
             .flat_map(|r| r.steps.iter().map(|s| s.rms_error)),
     );
-    let mut chart = ChartBuilder::on(&root)
-        .caption(
-            format!(
-                "{}: RMS node error against the exact reference (0 drawn at {LOG_FLOOR:.0e})",
-                case.scene
-            ),
-            ("sans-serif", 24),
-        )
-        .margin(12)
-        .x_label_area_size(45)
-        .y_label_area_size(80)
+    let caption = format!(
+        "{}: RMS node error against the exact reference (0 drawn at {LOG_FLOOR:.0e})",
+        case.scene
+    );
+    let mut chart = frame(&root, caption, 24)
         .build_cartesian_2d(0.0..t_end.max(1e-9), y.log_scale())
         .map_err(pe)?;
     chart
@@ -112,14 +106,7 @@ pub fn error_over_time(case: &CaseResult, path: &Path) -> Result<()> {
                 PathElement::new(vec![(x, y), (x + 18, y)], color.stroke_width(2))
             });
     }
-    chart
-        .configure_series_labels()
-        .position(SeriesLabelPosition::LowerRight)
-        .background_style(WHITE.mix(0.85))
-        .border_style(BLACK)
-        .label_font(("sans-serif", 13))
-        .draw()
-        .map_err(pe)?;
+    legend(&mut chart, SeriesLabelPosition::LowerRight, 13)?;
     root.present().map_err(pe)
 }
 
@@ -163,11 +150,7 @@ pub fn pareto(case: &CaseResult, path: &Path) -> Result<()> {
             "; exact rerun: {m:.1} ms, error 0"
         ))
     );
-    let mut chart = ChartBuilder::on(&root)
-        .caption(caption, ("sans-serif", 22))
-        .margin(12)
-        .x_label_area_size(45)
-        .y_label_area_size(80)
+    let mut chart = frame(&root, caption, 22)
         .build_cartesian_2d(x.clone().log_scale(), y.clone().log_scale())
         .map_err(pe)?;
     chart
@@ -222,6 +205,40 @@ pub fn pareto(case: &CaseResult, path: &Path) -> Result<()> {
     root.present().map_err(pe)
 }
 
+/// A chart on `root` with the study's margins and a caption of `size` points.
+fn frame<'a, 'b, DB: DrawingBackend>(
+    root: &'a DrawingArea<DB, Shift>,
+    caption: impl AsRef<str>,
+    size: u32,
+) -> ChartBuilder<'a, 'b, DB> {
+    let mut b = ChartBuilder::on(root);
+    b.caption(caption, ("sans-serif", size))
+        .margin(12)
+        .x_label_area_size(45)
+        .y_label_area_size(80);
+    b
+}
+
+/// The legend box at `pos` with labels of `size` points.
+fn legend<'a, DB, CT>(
+    chart: &mut ChartContext<'a, DB, CT>,
+    pos: SeriesLabelPosition,
+    size: u32,
+) -> Result<()>
+where
+    DB: DrawingBackend + 'a,
+    CT: CoordTranslate,
+{
+    chart
+        .configure_series_labels()
+        .position(pos)
+        .background_style(WHITE.mix(0.85))
+        .border_style(BLACK)
+        .label_font(("sans-serif", size))
+        .draw()
+        .map_err(pe)
+}
+
 /// Lines with dots and a legend entry each; empty series are left out.
 fn draw_lines<'a, DB, CT>(
     chart: &mut ChartContext<'a, DB, CT>,
@@ -267,11 +284,7 @@ pub fn compliance(report: &StudyReport, path: &Path) -> Result<()> {
             format!("Compliance build, 1183-node lens, friction on (GPU not measured: {why})")
         }
     };
-    let mut chart = ChartBuilder::on(&root)
-        .caption(caption, ("sans-serif", 20))
-        .margin(12)
-        .x_label_area_size(45)
-        .y_label_area_size(80)
+    let mut chart = frame(&root, caption, 20)
         .build_cartesian_2d(0.0..x_end, y.log_scale())
         .map_err(pe)?;
     chart
@@ -300,14 +313,7 @@ pub fn compliance(report: &StudyReport, path: &Path) -> Result<()> {
         })
         .collect();
     draw_lines(&mut chart, lines)?;
-    chart
-        .configure_series_labels()
-        .position(SeriesLabelPosition::UpperLeft)
-        .background_style(WHITE.mix(0.85))
-        .border_style(BLACK)
-        .label_font(("sans-serif", 14))
-        .draw()
-        .map_err(pe)?;
+    legend(&mut chart, SeriesLabelPosition::UpperLeft, 14)?;
     root.present().map_err(pe)
 }
 
@@ -322,11 +328,7 @@ pub fn growth(report: &StudyReport, path: &Path) -> Result<()> {
         Some(e) => format!("Cost against mesh size (step time ~ nodes^{e:.2})"),
         None => "Cost against mesh size".to_string(),
     };
-    let mut chart = ChartBuilder::on(&root)
-        .caption(caption, ("sans-serif", 24))
-        .margin(12)
-        .x_label_area_size(45)
-        .y_label_area_size(80)
+    let mut chart = frame(&root, caption, 24)
         .build_cartesian_2d(x.log_scale(), y.log_scale())
         .map_err(pe)?;
     chart
@@ -351,14 +353,7 @@ pub fn growth(report: &StudyReport, path: &Path) -> Result<()> {
         })
         .collect();
     draw_lines(&mut chart, lines)?;
-    chart
-        .configure_series_labels()
-        .position(SeriesLabelPosition::UpperLeft)
-        .background_style(WHITE.mix(0.85))
-        .border_style(BLACK)
-        .label_font(("sans-serif", 14))
-        .draw()
-        .map_err(pe)?;
+    legend(&mut chart, SeriesLabelPosition::UpperLeft, 14)?;
     root.present().map_err(pe)
 }
 
