@@ -13,7 +13,11 @@
 //! `--compliance factorized|exact|diagonal|rest|dense`, `--reuse N` (steps a
 //! factor serves the compliance, `ContactSettings::factor_reuse`), `--passes N`
 //! (contact passes per step), `--no-predict` (detect at the free motion, not
-//! at the predicted positions, `ContactSettings::predict`) — accuracy against time.
+//! at the predicted positions, `ContactSettings::predict`) — accuracy against
+//! time; `--lcp pgs|block|nncg|subspace` (the contact solver, `LcpSolver`);
+//! `--record-lcp DIR` writes each step's first-pass contact problem with at
+//! least `--record-min-contacts N` (default 91) contacts to `DIR`, for the
+//! `lcp` bench (`ContactProblem`).
 //!
 //! Headless, it prints the median time per phase, the steps per second, the
 //! contact counts and CG iterations, where the lens ended (inside the eye, in
@@ -38,7 +42,7 @@ use bevy_soft_tissue::scenes::cataract::CataractParams;
 
 mod common;
 use bevy_soft_tissue::solver::PreconditionerKind;
-use common::headless::run_headless;
+use common::headless::{Recording, run_headless_recording};
 
 struct Args {
     headless: bool,
@@ -50,6 +54,9 @@ struct Args {
     reuse: Option<u64>,
     passes: Option<usize>,
     predict: bool,
+    lcp: bevy_soft_tissue::contact::LcpSolver,
+    record: Option<std::path::PathBuf>,
+    record_min: usize,
 }
 
 fn parse() -> Result<Args, String> {
@@ -63,6 +70,9 @@ fn parse() -> Result<Args, String> {
         reuse: None,
         passes: None,
         predict: true,
+        lcp: Default::default(),
+        record: None,
+        record_min: 91,
     };
     let args: Vec<String> = std::env::args().skip(1).collect();
     let mut i = 0;
@@ -101,6 +111,26 @@ fn parse() -> Result<Args, String> {
                 };
                 i += 1;
             }
+            "--lcp" => {
+                use bevy_soft_tissue::contact::LcpSolver;
+                let v = value()?;
+                a.lcp = match v.as_str() {
+                    "pgs" => LcpSolver::ProjectedGaussSeidel,
+                    "block" => LcpSolver::BlockGaussSeidel,
+                    "nncg" => LcpSolver::Nncg,
+                    "subspace" => LcpSolver::Subspace,
+                    _ => return Err(format!("unknown LCP solver `{v}`")),
+                };
+                i += 1;
+            }
+            "--record-lcp" => {
+                a.record = Some(value()?.into());
+                i += 1;
+            }
+            "--record-min-contacts" => {
+                a.record_min = number()? as usize;
+                i += 1;
+            }
             "--reuse" => {
                 a.reuse = Some(number()?);
                 i += 1;
@@ -137,7 +167,11 @@ fn headless(args: &Args, params: &CataractParams, config: SoftTissueConfig) -> E
         preconditioner: args.preconditioner,
         ..Default::default()
     };
-    match run_headless(params, config, body, args.steps) {
+    let recording = args.record.as_ref().map(|dir| Recording {
+        dir: dir.clone(),
+        min_contacts: args.record_min,
+    });
+    match run_headless_recording(params, config, body, args.steps, recording.as_ref()) {
         Ok(s) => {
             let names = [
                 "assemble",
@@ -179,6 +213,18 @@ fn headless(args: &Args, params: &CataractParams, config: SoftTissueConfig) -> E
                 "contact passes: at most {} in a step, more than eight in {} steps",
                 s.max_passes.0, s.max_passes.1
             );
+            println!(
+                "LCP sweeps (first pass): at most {}, mean {:.1} over the jam steps; solves at the sweep limit: {}",
+                s.lcp_sweeps.0, s.lcp_sweeps.1, s.lcp_capped
+            );
+            if let Some(r) = &recording {
+                println!(
+                    "contact problems with at least {} contacts written to {}: {}",
+                    r.min_contacts,
+                    r.dir.display(),
+                    s.recorded
+                );
+            }
             let moved = (s.lens_center.1 - s.lens_center.0) * 1e3;
             println!(
                 "lens centre moved by ({:.2}, {:.2}, {:.2}) mm, peak speed {:.1} mm/s",
@@ -247,6 +293,7 @@ fn main() -> ExitCode {
         config.contact.factor_reuse = r;
     }
     config.contact.predict = args.predict;
+    config.contact.lcp.solver = args.lcp;
     if let Some(p) = args.passes {
         config.contact.max_passes = p.max(1);
     }

@@ -70,7 +70,7 @@ pub mod prelude {
     pub use crate::body::{BodySettings, DeformableBody, NodeConstraint, StepReport, StepTimings};
     pub use crate::contact::{
         ComplianceMode, Contact, ContactReport, ContactSettings, ContactSolver, LcpSettings,
-        PassKind, Pose, RigidTool, ToolShape,
+        LcpSolver, PassKind, Pose, RigidTool, ToolShape,
     };
     pub use crate::error::SoftTissueError;
     pub use crate::fem::RotationMethod;

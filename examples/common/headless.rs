@@ -8,7 +8,9 @@ use bevy_soft_tissue::SoftTissuePlugins;
 use bevy_soft_tissue::body::BodySettings;
 use bevy_soft_tissue::contact::{ContactSolver, PassKind};
 use bevy_soft_tissue::error::{Result, SoftTissueError};
-use bevy_soft_tissue::plugin::{SoftBody, SoftTissueConfig, SoftTissueDiagnostics, Tool};
+use bevy_soft_tissue::plugin::{
+    SoftBody, SoftTissueConfig, SoftTissueContacts, SoftTissueDiagnostics, Tool,
+};
 use bevy_soft_tissue::scenes::cataract::{self, CataractParams};
 use bevy_soft_tissue::scenes::{CataractScenePlugin, Lens};
 
@@ -54,6 +56,24 @@ pub struct HeadlessSummary {
     /// The most contact passes a step ran, and how many steps ran more than
     /// eight (see [`bevy_soft_tissue::contact::ContactSettings::max_passes`]).
     pub max_passes: (usize, usize),
+    /// First-pass LCP sweeps: the most in a step, and the mean over the jam
+    /// steps (more than 90 contacts).
+    pub lcp_sweeps: (usize, f64),
+    /// LCP solves that ran to their sweep limit unconverged.
+    pub lcp_capped: u64,
+    /// Contact problems written (see [`Recording`]).
+    pub recorded: usize,
+}
+
+/// Where and from how many contacts the first-pass contact problems are
+/// written ([`bevy_soft_tissue::contact::lcp::ContactProblem`] files named
+/// `step00042_c123.lcp`).
+#[derive(Debug, Clone)]
+pub struct Recording {
+    /// The folder (created if missing).
+    pub dir: std::path::PathBuf,
+    /// Steps with fewer contacts are not written.
+    pub min_contacts: usize,
 }
 
 /// Runs the cataract scene without a window for `steps` fixed steps and
@@ -64,6 +84,17 @@ pub fn run_headless(
     config: SoftTissueConfig,
     body: BodySettings,
     steps: usize,
+) -> Result<HeadlessSummary> {
+    run_headless_recording(params, config, body, steps, None)
+}
+
+/// [`run_headless`], writing the first-pass contact problems as `recording` says.
+pub fn run_headless_recording(
+    params: &CataractParams,
+    config: SoftTissueConfig,
+    body: BodySettings,
+    steps: usize,
+    recording: Option<&Recording>,
 ) -> Result<HeadlessSummary> {
     let h = config.timestep;
     let mut app = App::new();
@@ -79,6 +110,18 @@ pub fn run_headless(
         Duration::from_secs_f64(h),
     ));
     app.update();
+    if let Some(r) = recording {
+        std::fs::create_dir_all(&r.dir).map_err(|e| SoftTissueError::Io {
+            path: r.dir.display().to_string(),
+            reason: e.to_string(),
+        })?;
+        app.world_mut()
+            .resource_mut::<SoftTissueContacts>()
+            .solver
+            .record_problems(Some(r.min_contacts));
+    }
+    let mut recorded = 0;
+    let mut lcp_sweeps = (0usize, 0usize);
     // Queries made once, read after every step.
     let mut lens_q = app.world_mut().query_filtered::<&SoftBody, With<Lens>>();
     let mut tool_q = app.world_mut().query::<&Tool>();
@@ -149,8 +192,21 @@ pub fn run_headless(
             p.push(x);
         }
         contacts.push(d.contacts);
+        lcp_sweeps.0 = lcp_sweeps.0.max(d.lcp_first_iterations);
         if d.contacts > 90 {
             jam.push(d.step_ms());
+            lcp_sweeps.1 += d.lcp_first_iterations;
+        }
+        if let Some(r) = recording
+            && let Some(p) = app
+                .world_mut()
+                .resource_mut::<SoftTissueContacts>()
+                .solver
+                .take_recorded_problem()
+        {
+            let name = format!("step{:05}_c{}.lcp", d.steps, p.num_contacts());
+            p.write(&r.dir.join(name))?;
+            recorded += 1;
         }
         if (50..=90).contains(&d.contacts) {
             band.push(d.step_ms());
@@ -228,8 +284,11 @@ pub fn run_headless(
         ),
         median_ms_50_90: (!band.is_empty()).then(|| med(&mut band)),
         max_tissue_penetration: max_tissue,
+        lcp_sweeps: (lcp_sweeps.0, lcp_sweeps.1 as f64 / jam.len().max(1) as f64),
         jam: (jam.len(), (!jam.is_empty()).then(|| med(&mut jam))),
         max_passes,
+        lcp_capped: app.world().resource::<SoftTissueDiagnostics>().lcp_capped,
+        recorded,
     };
     Ok(summary)
 }

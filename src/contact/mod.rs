@@ -19,7 +19,7 @@
 //! | detection | `detect/mod.rs`, `detect/geometry.rs` | BVHs, vertex–tool and vertex–triangle contacts |
 //! | Jacobian | `jacobian.rs` | rows, `μ`, `δ₀`, the entries of `H` per body |
 //! | compliance | `compliance/` (one file per [`ComplianceMode`]) | per body: factor view, snapshot, cached node columns, rest inverse |
-//! | LCP | `lcp.rs` | projected Gauss–Seidel and its warm start |
+//! | LCP | `lcp/` | the solvers, their shared residual, the warm start, recorded problems |
 //! | correction | `correct.rs` | `Δx`, `Δv`, tool reactions |
 //! | settings | `settings.rs` | [`ContactSettings`], the one home of every contact setting |
 //! | access | `bodies.rs` | [`Bodies`] / [`Tools`]: bodies and tools by index, from slices or ECS views |
@@ -33,8 +33,9 @@
 //! 2. **Compliance** ([`ContactSolver::build_compliance`]): the Jacobian `H`
 //!    — one normal row per contact, plus two tangent rows when `μ > 0` — and
 //!    `W = Σ_bodies h² H A⁻¹ Hᵀ`, per body with its [`ComplianceMode`].
-//! 3. **LCP** ([`ContactSolver::solve_lcp`]): projected Gauss–Seidel with a
-//!    circular Coulomb cone ([`lcp`]), warm-started in the first pass.
+//! 3. **LCP** ([`ContactSolver::solve_lcp`]): Signorini contact with a
+//!    circular Coulomb cone ([`lcp`]; block Gauss–Seidel with NNCG by
+//!    default, [`LcpSolver`]), warm-started in the first pass.
 //! 4. **Correct** ([`ContactSolver::correct`]): `Δx = h² A⁻¹ Hᵀ λ` with the
 //!    same approximation of `A⁻¹` as `W`, `Δv = Δx / h`, and the reaction on
 //!    each tool.
@@ -45,7 +46,7 @@
 //! without contacts no compliance or LCP work, and `μ = 0` adds no friction rows.
 //!
 //! ## Adding things
-//! - an LCP solver: `lcp.rs` (and a selector in [`LcpSettings`]);
+//! - an LCP solver: a sweep in `lcp/` and a variant of [`LcpSolver`];
 //! - a compliance mode: a variant of [`ComplianceMode`] and a file in
 //!   `compliance/`; the exhaustive `match`es show every place to handle it;
 //! - a tool shape: a variant of [`ToolShape`] in `tool.rs` (detection asks the
@@ -68,7 +69,7 @@ pub use bodies::{
     AsBody, AsBodyMut, AsTool, AsToolMut, Bodies, BodiesMut, NO_TOOLS, Tools, ToolsMut,
 };
 pub use compliance::{BodyCompliance, ComplianceBackend, ComplianceMode, FactorKey, JacEntry};
-pub use lcp::{LcpReport, LcpSettings};
+pub use lcp::{LcpReport, LcpSettings, LcpSolver};
 pub use settings::ContactSettings;
 pub use tool::{Pose, RigidTool, ToolShape};
 pub use types::{Contact, ContactOther, ContactReport, ContactSide, PassKind, tangent_basis};
@@ -77,7 +78,7 @@ use crate::error::{Result, SoftTissueError, check_timestep};
 use crate::math::Vec3;
 use detect::{DetectBody, DetectParams};
 use jacobian::Jacobian;
-use lcp::{ContactKey, OtherKey, WarmStart};
+use lcp::{ContactKey, ContactProblem, LcpScratch, OtherKey, WarmStart};
 use predict::Prediction;
 
 /// The contact pipeline (see the module docs). Keep one per scene; it caches
@@ -97,8 +98,12 @@ pub struct ContactSolver {
     jac: Jacobian,
     w: Vec<f64>,
     lambda: Vec<f64>,
-    lcp_delta: Vec<f64>,
+    lcp_scratch: LcpScratch,
     warm: WarmStart,
+    /// First-pass problems with at least this many contacts are kept for
+    /// [`Self::take_recorded_problem`].
+    record_from: Option<usize>,
+    recorded: Option<ContactProblem>,
     dx: Vec<Vec<Vec3>>,
     stale: Vec<usize>,
     /// Per body index, per node: the contact force of the step, all passes.
@@ -117,6 +122,25 @@ impl ContactSolver {
             settings,
             ..Default::default()
         })
+    }
+
+    /// Keeps a copy of every first-pass contact problem with at least
+    /// `min_contacts` contacts, and of every problem (any pass) whose solve
+    /// ran to its sweep limit (`None`: keep none, the default), to be taken
+    /// with [`Self::take_recorded_problem`] and replayed through any solver
+    /// ([`ContactProblem`]). Recording copies `W`: a tool for benchmarks,
+    /// not for every step of a running scene.
+    pub fn record_problems(&mut self, min_contacts: Option<usize>) {
+        self.record_from = min_contacts;
+        if min_contacts.is_none() {
+            self.recorded = None;
+        }
+    }
+
+    /// The last recorded problem (see [`Self::record_problems`]), if one was
+    /// recorded since the last take.
+    pub fn take_recorded_problem(&mut self) -> Option<ContactProblem> {
+        self.recorded.take()
     }
 
     /// Forgets every body's cached node columns and Gram blocks (their memory is
@@ -396,7 +420,8 @@ impl ContactSolver {
         }
     }
 
-    /// Phase 3: projected Gauss–Seidel on `W λ + δ₀` (warm-started in a first pass).
+    /// Phase 3: the LCP on `W λ + δ₀` with [`LcpSettings::solver`]
+    /// (warm-started in a first pass).
     pub fn solve_lcp<B: Bodies + ?Sized>(&mut self, bodies: &B, pass: PassKind) -> LcpReport {
         let t0 = Instant::now();
         let m = self.jac.m();
@@ -407,6 +432,13 @@ impl ContactSolver {
             let keys = self.contacts.iter().map(|c| Self::key(c, bodies));
             self.warm.apply(keys, &self.jac.rows, &mut self.lambda);
         }
+        let problem = self.record_from.map(|_| ContactProblem {
+            w: self.w.clone(),
+            delta0: self.jac.delta0.clone(),
+            rows: self.jac.rows.clone(),
+            mu: self.jac.mu.clone(),
+            lambda0: self.lambda.clone(),
+        });
         let report = lcp::solve(
             &self.w,
             &self.jac.delta0,
@@ -414,8 +446,14 @@ impl ContactSolver {
             &self.jac.mu,
             &mut self.lambda,
             &self.settings.lcp,
-            &mut self.lcp_delta,
+            &mut self.lcp_scratch,
         );
+        if let Some(p) = problem
+            && (report.capped
+                || first && self.record_from.is_some_and(|n| self.contacts.len() >= n))
+        {
+            self.recorded = Some(p);
+        }
         if first {
             self.warm.clear();
         }
@@ -430,6 +468,10 @@ impl ContactSolver {
             self.contacts[ci].force = Vec3::new(f[0], f[1], f[2]);
         }
         self.report.lcp = report;
+        if first {
+            self.report.lcp_first = report;
+        }
+        self.report.lcp_capped += usize::from(report.capped);
         self.report.lcp_seconds += t0.elapsed().as_secs_f64();
         report
     }

@@ -86,7 +86,22 @@ impl ContactSettings {
     pub fn validate(&self) -> Result<()> {
         check_positive("alarm_distance", self.alarm_distance)?;
         crate::error::check_range("body_friction", self.body_friction, 0.0, 1e6)?;
-        check_positive("lcp.tolerance", self.lcp.tolerance)?;
+        let t = self.lcp.tolerance;
+        if !(t.is_finite() && t >= 0.0) {
+            return Err(SoftTissueError::InvalidParameter {
+                name: "lcp.tolerance",
+                value: t,
+                reason: "must be finite and non-negative (0: off)",
+            });
+        }
+        let rt = self.lcp.residual_tolerance;
+        if !(rt.is_finite() && rt >= 0.0) {
+            return Err(SoftTissueError::InvalidParameter {
+                name: "lcp.residual_tolerance",
+                value: rt,
+                reason: "must be finite and non-negative (0: off)",
+            });
+        }
         let dt = self.lcp.displacement_tolerance;
         if !(dt.is_finite() && dt >= 0.0) {
             return Err(SoftTissueError::InvalidParameter {

@@ -76,8 +76,13 @@ pub struct ContactReport {
     pub rows: usize,
     /// Contacts that have friction rows.
     pub friction_contacts: usize,
-    /// LCP outcome.
+    /// LCP outcome of the last pass.
     pub lcp: LcpReport,
+    /// LCP outcome of the first pass (all contacts, with friction).
+    pub lcp_first: LcpReport,
+    /// LCP solves of this step that ran to their sweep limit
+    /// ([`LcpReport::capped`]).
+    pub lcp_capped: usize,
     /// Forward (or full) solves done for `W`.
     pub solves: usize,
     /// Gram blocks computed (cache misses).

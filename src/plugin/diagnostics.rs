@@ -44,8 +44,15 @@ pub struct SoftTissueDiagnostics {
     pub contacts: usize,
     /// LCP residual (max of complementarity and friction), metres.
     pub lcp_residual: f64,
-    /// LCP sweeps.
+    /// LCP sweeps (last pass).
     pub lcp_iterations: usize,
+    /// LCP sweeps of the first pass.
+    pub lcp_first_iterations: usize,
+    /// Relative residual of the first pass's LCP answer
+    /// ([`crate::contact::lcp::residual`]), dimensionless.
+    pub lcp_relative_residual: f64,
+    /// Counter: LCP solves that ran to their sweep limit unconverged.
+    pub lcp_capped: u64,
     /// Contact passes run.
     pub contact_passes: usize,
     /// Counter: detection runs.
@@ -89,6 +96,8 @@ impl SoftTissueDiagnostics {
         self.contacts = 0;
         self.lcp_residual = 0.0;
         self.lcp_iterations = 0;
+        self.lcp_first_iterations = 0;
+        self.lcp_relative_residual = 0.0;
         self.contact_passes = 0;
     }
 

@@ -15,7 +15,8 @@
 //! | `async_realtime` | `Async` | `Factorized` | paced at `h` per step, repeated |
 //! | `async_lag2` | `AsyncLagged { lag: 2 }` | `Factorized` | deterministic |
 //! | `async_cg1e-4`, `…1e-6`, `…1e-8` | `Async` | `Factorized` | CG tolerance |
-//! | `async_lcp1e-4`, `async_lcp1e-6` | `Async` | `Factorized` | LCP tolerance |
+//! | `async_lcp1e-4`, `async_lcp1e-6` | `Async` | `Factorized` | LCP residual tolerance |
+//! | `async_lcp_pgs` | `Async` | `Factorized` | projected Gauss–Seidel LCP (≤ 500 sweeps) |
 //! | `async_lcp_reference` | `Async` | `Factorized` | the reference's LCP: 1e-10, up to 5000 sweeps |
 //! | `async_passes1` | `Async` | `Factorized` | one contact pass |
 //! | `async_no_predict` | `Async` | `Factorized` | contacts detected at the free motion |
@@ -24,7 +25,7 @@
 
 use super::{Pacing, Variant};
 use crate::body::BodySettings;
-use crate::contact::{ComplianceMode, ContactSettings};
+use crate::contact::{ComplianceMode, ContactSettings, LcpSolver};
 use crate::solver::PreconditionerKind;
 
 /// Tolerance of the reference's CG and LCP.
@@ -40,6 +41,7 @@ pub fn reference(body: BodySettings, contact: ContactSettings) -> Variant {
     let mut c = contact;
     c.compliance = ComplianceMode::Exact;
     c.lcp.tolerance = REFERENCE_TOLERANCE;
+    c.lcp.residual_tolerance = REFERENCE_TOLERANCE;
     c.lcp.max_iterations = c.lcp.max_iterations.max(5000);
     Variant::new("reference", b, c)
 }
@@ -126,12 +128,17 @@ pub fn standard(body: BodySettings, contact: ContactSettings, opts: &Options) ->
             out.push(with(name, asy, fac, &|b, _| b.cg.tolerance = tol));
         }
         for (name, tol) in [("async_lcp1e-4", 1e-4), ("async_lcp1e-6", 1e-6)] {
-            out.push(with(name, asy, fac, &|_, c| c.lcp.tolerance = tol));
+            out.push(with(name, asy, fac, &|_, c| c.lcp.residual_tolerance = tol));
         }
+        // The projected Gauss–Seidel LCP of earlier releases, capped at 500 sweeps.
+        out.push(with("async_lcp_pgs", asy, fac, &|_, c| {
+            c.lcp.solver = LcpSolver::ProjectedGaussSeidel
+        }));
         // The reference's LCP (tolerance and sweep cap) with the default
         // factor: what the LCP's own convergence costs in accuracy.
         out.push(with("async_lcp_reference", asy, fac, &|_, c| {
             c.lcp.tolerance = REFERENCE_TOLERANCE;
+            c.lcp.residual_tolerance = REFERENCE_TOLERANCE;
             c.lcp.max_iterations = c.lcp.max_iterations.max(5000);
         }));
         out.push(with("async_passes1", asy, fac, &|_, c| c.max_passes = 1));

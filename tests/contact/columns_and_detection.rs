@@ -162,12 +162,14 @@ fn lcp_incremental_delta_and_displacement_tolerance() {
     let mut sweeps = Vec::new();
     for tol in [1e-12, 1e-9, 1e-7] {
         let settings = LcpSettings {
+            solver: lcp::LcpSolver::ProjectedGaussSeidel,
             tolerance: 1e-300,
+            residual_tolerance: 0.0,
             displacement_tolerance: tol,
             ..Default::default()
         };
         let mut lambda = vec![0.0; m];
-        let mut delta = Vec::new();
+        let mut scratch = lcp::LcpScratch::default();
         let rep = lcp::solve(
             &w_rows,
             &delta0,
@@ -175,8 +177,9 @@ fn lcp_incremental_delta_and_displacement_tolerance() {
             &mu,
             &mut lambda,
             &settings,
-            &mut delta,
+            &mut scratch,
         );
+        let delta = scratch.delta();
         assert!(rep.iterations < settings.max_iterations, "{tol}: {rep:?}");
         // The returned δ is δ₀ + W λ.
         for r in 0..m {
