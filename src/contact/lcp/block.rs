@@ -14,7 +14,7 @@
 //! what makes block Gauss–Seidel converge steadily where a per-row step that
 //! approximates the cone stalls.
 
-use super::{SweepStats, axpy};
+use super::types::{SweepStats, axpy, project_cone};
 
 /// One contact's Signorini–Coulomb problem `δ = A λ + q`, solved exactly.
 ///
@@ -283,18 +283,4 @@ fn projected(a: &[[f64; 3]; 3], q: [f64; 3], mu: f64, old: [f64; 3]) -> [f64; 3]
         l[i] = old[i] - d / bound;
     }
     project_cone(l, mu)
-}
-
-/// Euclidean projection onto the cone `‖λ_t‖ ≤ μ λ_n`.
-pub(super) fn project_cone(l: [f64; 3], mu: f64) -> [f64; 3] {
-    let t = l[1].hypot(l[2]);
-    if t <= mu * l[0] {
-        return l;
-    }
-    if mu * t <= -l[0] {
-        return [0.0; 3];
-    }
-    let n = (l[0] + mu * t) / (1.0 + mu * mu);
-    let s = if t > 0.0 { mu * n / t } else { 0.0 };
-    [n, l[1] * s, l[2] * s]
 }

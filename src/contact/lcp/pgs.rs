@@ -9,7 +9,7 @@
 //! the other, not together, which is what makes it stall on strongly
 //! coupled, sliding contacts (see [`super::block`]).
 
-use super::{SweepStats, axpy};
+use super::types::{SweepStats, axpy};
 
 /// One forward sweep, keeping `delta = δ₀ + W λ` up to date.
 pub(super) fn sweep(

@@ -8,7 +8,8 @@
 
 use std::path::Path;
 
-use super::{LcpReport, LcpScratch, LcpSettings};
+use super::solve::{LcpScratch, solve};
+use super::types::{LcpReport, LcpSettings};
 use crate::error::{Result, SoftTissueError};
 
 const MAGIC: &[u8; 8] = b"BSTLCP01";
@@ -87,7 +88,7 @@ impl ContactProblem {
         self.validate()?;
         let mut lambda = self.lambda0.clone();
         let mut scratch = LcpScratch::default();
-        let report = super::solve(
+        let report = solve(
             &self.w,
             &self.delta0,
             &self.rows,
@@ -96,7 +97,7 @@ impl ContactProblem {
             settings,
             &mut scratch,
         );
-        Ok((lambda, scratch.delta, report))
+        Ok((lambda, scratch.delta().to_vec(), report))
     }
 
     /// The problem in the file format above.

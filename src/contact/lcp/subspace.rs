@@ -26,7 +26,7 @@
 //!      Newton), which converges quadratically from there. Started cold it
 //!      cycles between active sets, hence phase 1.
 //! 3. Stop at the residual target, after [`MAX_ITERATIONS`], or after three
-//!    iterations without a new best residual ([`super::residual`]).
+//!    iterations without a new best residual ([`residual`]).
 //!
 //! The iterates are not projected (the active set follows the unprojected
 //! forces, as a primal–dual active-set method needs); the best one is put
@@ -44,7 +44,7 @@ use faer::dyn_stack::MemStack;
 use faer::linalg::lu::partial_pivoting as lu;
 use faer::{MatMut, Par};
 
-use super::block::project_cone;
+use super::types::{exact_delta, project_cone, residual};
 
 /// Most Newton iterations in one subspace step.
 pub const MAX_ITERATIONS: usize = 16;
@@ -153,7 +153,7 @@ pub(super) fn step(
         if s.free.is_empty() {
             break;
         }
-        super::exact_delta(w, delta0, &s.lambda, &mut s.delta);
+        exact_delta(w, delta0, &s.lambda, &mut s.delta);
         solve_newton(w, m, s)?;
         for (&r, &d) in s.free.iter().zip(&s.rhs) {
             s.lambda[r] += d;
@@ -166,8 +166,8 @@ pub(super) fn step(
                 s.lambda[r + 2] = k * p[1];
             }
         }
-        super::exact_delta(w, delta0, &s.lambda, &mut s.delta);
-        let r = super::residual(w, delta0, rows, mu, &s.lambda, &s.delta);
+        exact_delta(w, delta0, &s.lambda, &mut s.delta);
+        let r = residual(w, delta0, rows, mu, &s.lambda, &s.delta);
         if r < best {
             best = r;
             s.best.clear();
@@ -184,7 +184,7 @@ pub(super) fn step(
                 full = true;
                 s.lambda.clear();
                 s.lambda.extend_from_slice(&s.best);
-                super::exact_delta(w, delta0, &s.lambda, &mut s.delta);
+                exact_delta(w, delta0, &s.lambda, &mut s.delta);
             }
             std::mem::swap(&mut s.free, &mut s.last);
         } else if r > 0.5 * last_r {
@@ -202,8 +202,8 @@ pub(super) fn step(
     // The best iterate, back in the cone, if it beats the start.
     std::mem::swap(&mut s.lambda, &mut s.best);
     project(rows, mu, s);
-    super::exact_delta(w, delta0, &s.lambda, &mut s.delta);
-    let new = super::residual(w, delta0, rows, mu, &s.lambda, &s.delta);
+    exact_delta(w, delta0, &s.lambda, &mut s.delta);
+    let new = residual(w, delta0, rows, mu, &s.lambda, &s.delta);
     if new < current {
         lambda.copy_from_slice(&s.lambda);
         delta.copy_from_slice(&s.delta);

@@ -1,0 +1,164 @@
+//! The solve loop shared by every solver: sweeps, the stopping tests, NNCG's
+//! momentum and the subspace steps.
+
+use super::types::{LcpReport, LcpSettings, LcpSolver, exact_delta, residual};
+use super::{block, pgs, subspace};
+
+/// Scratch of an LCP solve, sized on first use and kept between solves.
+#[derive(Debug, Clone, Default)]
+pub struct LcpScratch {
+    delta: Vec<f64>,
+    subspace: subspace::SubspaceScratch,
+    before: Vec<f64>,
+    prev: Vec<f64>,
+    p: Vec<f64>,
+    wp: Vec<f64>,
+}
+
+impl LcpScratch {
+    /// `δ = W λ + δ₀` of the last solve's answer.
+    pub fn delta(&self) -> &[f64] {
+        &self.delta
+    }
+}
+
+/// Solves the LCP in place with `settings.solver`. `w` is the dense,
+/// symmetric `m × m` matrix (row-major), `rows[c]..rows[c+1]` the rows of
+/// contact `c` (1 or 3), `mu[c]` its friction, `lambda` the start (warm or
+/// zero) and, on return, the answer; `scratch.delta()` then holds `δ = W λ + δ₀`.
+pub fn solve(
+    w: &[f64],
+    delta0: &[f64],
+    rows: &[usize],
+    mu: &[f64],
+    lambda: &mut [f64],
+    settings: &LcpSettings,
+    scratch: &mut LcpScratch,
+) -> LcpReport {
+    let m = delta0.len();
+    let nncg = settings.solver == LcpSolver::Nncg;
+    let sweep = match settings.solver {
+        LcpSolver::ProjectedGaussSeidel => pgs::sweep,
+        LcpSolver::BlockGaussSeidel | LcpSolver::Nncg | LcpSolver::Subspace => block::sweep,
+    };
+    let subspace = settings.solver == LcpSolver::Subspace;
+    let s = scratch;
+    s.delta.resize(m, 0.0);
+    exact_delta(w, delta0, lambda, &mut s.delta);
+    if nncg {
+        for v in [&mut s.before, &mut s.prev, &mut s.p, &mut s.wp] {
+            v.clear();
+            v.resize(m, 0.0);
+        }
+    }
+    let omega = settings.over_relaxation;
+    let mut report = LcpReport::default();
+    let mut last_norm2 = 0.0;
+    let (mut next_subspace, mut subspace_gap) = (0, 1);
+    for it in 0..settings.max_iterations {
+        if nncg {
+            s.prev.copy_from_slice(lambda);
+            s.before.copy_from_slice(&s.delta);
+        }
+        let stats = sweep(w, rows, mu, lambda, &mut s.delta, omega);
+        report.iterations = it + 1;
+        let mut res = if settings.residual_tolerance > 0.0 || subspace {
+            residual(w, delta0, rows, mu, lambda, &s.delta)
+        } else {
+            f64::INFINITY
+        };
+        let mut converged = stats.max_change <= settings.tolerance * stats.max_force.max(1e-300)
+            || stats.max_disp <= settings.displacement_tolerance
+            || res <= settings.residual_tolerance;
+        if subspace && !converged && it >= next_subspace {
+            let kept = subspace::step(
+                w,
+                delta0,
+                rows,
+                mu,
+                lambda,
+                &mut s.delta,
+                res,
+                settings.residual_tolerance,
+                &mut s.subspace,
+            );
+            if let Some(r) = kept {
+                report.subspace_steps += 1;
+                res = r;
+                converged = res <= settings.residual_tolerance;
+            }
+            // A step that missed the target is retried after twice as many
+            // sweeps as the last, so a problem it cannot finish costs sweeps,
+            // not factorizations.
+            if !converged {
+                next_subspace = it + subspace_gap;
+                subspace_gap *= 2;
+            }
+        }
+        if converged {
+            break;
+        }
+        if it + 1 == settings.max_iterations {
+            report.capped = true;
+            break;
+        }
+        if nncg {
+            // r = λ − λ_prev (the sweep's step), W r = δ − δ_before.
+            let mut norm2 = 0.0;
+            for (l, p) in lambda.iter().zip(&s.prev) {
+                norm2 += (l - p) * (l - p);
+            }
+            let beta = if last_norm2 > 0.0 {
+                norm2 / last_norm2
+            } else {
+                0.0
+            };
+            if beta > 1.0 || !beta.is_finite() {
+                s.p.fill(0.0);
+                s.wp.fill(0.0);
+            } else {
+                for i in 0..m {
+                    let r = lambda[i] - s.prev[i];
+                    let wr = s.delta[i] - s.before[i];
+                    lambda[i] += beta * s.p[i];
+                    s.delta[i] += beta * s.wp[i];
+                    s.p[i] = beta * s.p[i] + r;
+                    s.wp[i] = beta * s.wp[i] + wr;
+                }
+            }
+            last_norm2 = norm2;
+            // Round-off of the carried W p stays small; start it afresh now and then.
+            if (it + 1) % 64 == 0 {
+                exact_delta(w, delta0, lambda, &mut s.delta);
+            }
+        }
+    }
+    exact_delta(w, delta0, lambda, &mut s.delta);
+    report.residual = residual(w, delta0, rows, mu, lambda, &s.delta);
+    let delta = &s.delta;
+    for c in 0..rows.len().saturating_sub(1) {
+        let r = rows[c];
+        let dn = delta[r];
+        let wnn = w[r * m + r].max(0.0);
+        report.complementarity = report.complementarity.max(dn.min(wnn * lambda[r]).abs());
+        report.penetration = report.penetration.max(-dn);
+        if rows[c + 1] - r == 3 {
+            let d = [delta[r + 1], delta[r + 2]];
+            let l = [lambda[r + 1], lambda[r + 2]];
+            let dnorm = (d[0] * d[0] + d[1] * d[1]).sqrt();
+            let lnorm = (l[0] * l[0] + l[1] * l[1]).sqrt();
+            let limit = mu[c] * lambda[r];
+            let wtt = w[(r + 1) * m + r + 1].max(w[(r + 2) * m + r + 2]);
+            let res = if lnorm < limit * (1.0 - 1e-9) || limit == 0.0 {
+                if limit == 0.0 { 0.0 } else { dnorm }
+            } else {
+                // Sliding: δ_t must be anti-parallel to λ_t.
+                let along = -(d[0] * l[0] + d[1] * l[1]) / lnorm;
+                (dnorm * dnorm - along * along).max(0.0).sqrt() + (-along).max(0.0)
+            };
+            let cone = (lnorm - limit).max(0.0) * wtt;
+            report.friction = report.friction.max(res + cone);
+        }
+    }
+    report
+}
