@@ -199,7 +199,7 @@ fn penetration(scene: &Scene) -> f64 {
 }
 
 /// A soft block on a rigid plane tilted by θ (gravity tilted instead).
-fn block_slide(theta_deg: f64, mu: f64) -> f64 {
+fn block_slide(theta_deg: f64, mu: f64, solver: LcpSolver) -> f64 {
     let mesh = generate::box_mesh(v3(-5e-3, -5e-3, 0.0), v3(5e-3, 5e-3, 4e-3), [4, 4, 2]).unwrap();
     let th = theta_deg.to_radians();
     let g = 9.81;
@@ -213,11 +213,12 @@ fn block_slide(theta_deg: f64, mu: f64) -> f64 {
         settings,
     )
     .unwrap();
-    let mut scene = Scene::new(ContactSettings {
+    let mut contact = ContactSettings {
         alarm_distance: 2e-4,
         ..Default::default()
-    })
-    .unwrap();
+    };
+    contact.lcp.solver = solver;
+    let mut scene = Scene::new(contact).unwrap();
     scene.add_body(body);
     let plane = RigidTool::new(
         ToolShape::Box {
@@ -329,3 +330,6 @@ mod columns_and_detection;
 /// Tests: W against references, contact conditions, friction, the paper scene.
 #[path = "contact/response.rs"]
 mod response;
+
+#[path = "contact/lcp.rs"]
+mod lcp;

@@ -113,17 +113,27 @@ fn contact_conditions_hold_after_every_step() {
 #[test]
 fn friction_sticks_below_and_slides_above_the_cone() {
     let mu = 0.5; // tan θ = μ at θ ≈ 26.6°
-    let stick = block_slide(20.0, mu);
-    let slide = block_slide(35.0, mu);
-    println!("displacement: stick {stick:e} m, slide {slide:e} m");
-    // Free sliding over 0.6 s: ½ g (sin θ − μ cos θ) t² ≈ 0.29 m at 35° (less mass damping).
-    let th = 35f64.to_radians();
-    let expected = 0.5 * 9.81 * (th.sin() - mu * th.cos()) * 0.6f64.powi(2);
-    assert!(stick.abs() < 0.02 * expected, "stick moved {stick}");
-    assert!(
-        slide > 0.5 * expected,
-        "slide moved {slide}, expected ≈ {expected}"
-    );
+    for solver in [
+        LcpSolver::Subspace,
+        LcpSolver::Nncg,
+        LcpSolver::BlockGaussSeidel,
+        LcpSolver::ProjectedGaussSeidel,
+    ] {
+        let stick = block_slide(20.0, mu, solver);
+        let slide = block_slide(35.0, mu, solver);
+        println!("{solver:?}: displacement: stick {stick:e} m, slide {slide:e} m");
+        // Free sliding over 0.6 s: ½ g (sin θ − μ cos θ) t² ≈ 0.29 m at 35° (less mass damping).
+        let th = 35f64.to_radians();
+        let expected = 0.5 * 9.81 * (th.sin() - mu * th.cos()) * 0.6f64.powi(2);
+        assert!(
+            stick.abs() < 0.02 * expected,
+            "{solver:?}: stick moved {stick}"
+        );
+        assert!(
+            slide > 0.5 * expected,
+            "{solver:?}: slide moved {slide}, expected ≈ {expected}"
+        );
+    }
 }
 
 #[test]

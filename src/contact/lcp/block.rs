@@ -51,7 +51,10 @@ pub fn local_coulomb(a: &[[f64; 3]; 3], q: [f64; 3], mu: f64, guess: [f64; 3]) -
         .or_else(|| stick.and_then(|l| dir([l[1], l[2]])))
         .unwrap_or(0.0);
     let slide = Slide { a, q, mu };
-    let theta = slide.newton(theta0).or_else(|| slide.bracket(theta0))?;
+    let theta = slide
+        .newton(theta0)
+        .or_else(|| slide.bracket(theta0, 48))
+        .or_else(|| slide.bracket(theta0, 2048))?;
     let e = slide.eval(theta)?;
     let (c, s) = (theta.cos(), theta.sin());
     Some([e.ln, -mu * e.ln * c, -mu * e.ln * s])
@@ -160,14 +163,15 @@ impl Slide<'_> {
         None
     }
 
-    /// A search over the circle for a sign change of `cross` where the force
-    /// opposes the slip, refined by bisection; the root nearest `theta0` wins.
-    fn bracket(&self, theta0: f64) -> Option<f64> {
-        const N: usize = 48;
-        let step = std::f64::consts::TAU / N as f64;
+    /// A search over the circle (`n` samples) for a sign change of `cross`
+    /// where the force opposes the slip, refined by bisection; the root
+    /// nearest `theta0` wins. Two roots closer than a sample apart cancel,
+    /// hence a finer second search when the first finds none.
+    fn bracket(&self, theta0: f64, n: usize) -> Option<f64> {
+        let step = std::f64::consts::TAU / n as f64;
         let mut best: Option<(f64, f64)> = None;
         let mut prev: Option<(f64, SlideEval)> = None;
-        for i in 0..=N {
+        for i in 0..=n {
             let t = theta0 + i as f64 * step;
             let cur = self.eval(t);
             if let (Some((t0, e0)), Some(e1)) = (&prev, &cur)

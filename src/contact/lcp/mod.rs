@@ -41,8 +41,10 @@
 //! (De Saxcé): with `ũ = (δ_n + μ‖δ_t‖, δ_t)` and a per-contact scale
 //! `ρ_c = 1/W_nn`, each contact contributes `λ_c − Π_K(λ_c − ρ_c ũ_c)`, zero
 //! exactly when the contact satisfies Signorini and Coulomb. The norm of all
-//! contributions is divided by the larger of `‖λ‖` and `‖ρ (−δ₀_n)⁺‖` (the
-//! forces that would close each contact alone), so it is dimensionless and
+//! contributions is divided by the larger of `‖λ‖` and `‖ρ δ₀‖` (forces of
+//! the size that would undo each contact's free violation alone, so an
+//! all-open answer is measured against the problem's own scale, not against
+//! zero), so it is dimensionless and
 //! comparable across problems. It is what [`ContactProblem`] replays and the
 //! `lcp` bench compare.
 //!

@@ -134,6 +134,14 @@ impl ContactProblem {
         // for any header whose counts fit the input.
         let len = bytes.len() as u128;
         let (m128, nc128) = (m as u128, nc as u128);
+        // Each count needs at least 8 bytes per unit; past that the header lies
+        // (and the sizes below stay far from overflow).
+        if m128 > len / 8 || nc128 > len / 8 {
+            return Err(bad(
+                8,
+                format!("m = {m} and {nc} contacts need more bytes than the file's {len}"),
+            ));
+        }
         let words = (nc128 + 1) + nc128 + 2 * m128 + m128 * (m128 + 1) / 2;
         if 24 + 8 * words != len {
             return Err(bad(

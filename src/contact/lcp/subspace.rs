@@ -168,6 +168,9 @@ pub(super) fn step(
         }
         exact_delta(w, delta0, &s.lambda, &mut s.delta);
         let r = residual(w, delta0, rows, mu, &s.lambda, &s.delta);
+        if !r.is_finite() {
+            return None;
+        }
         if r < best {
             best = r;
             s.best.clear();
@@ -182,9 +185,11 @@ pub(super) fn step(
                 // Settled, or cycling between active sets: on to phase 2 from
                 // the best iterate so far.
                 full = true;
-                s.lambda.clear();
-                s.lambda.extend_from_slice(&s.best);
-                exact_delta(w, delta0, &s.lambda, &mut s.delta);
+                if !s.best.is_empty() {
+                    s.lambda.clear();
+                    s.lambda.extend_from_slice(&s.best);
+                    exact_delta(w, delta0, &s.lambda, &mut s.delta);
+                }
             }
             std::mem::swap(&mut s.free, &mut s.last);
         } else if r > 0.5 * last_r {

@@ -156,7 +156,9 @@ pub fn residual(
             continue;
         }
         let rho = 1.0 / wnn;
-        scale2 += (rho * (-delta0[r]).max(0.0)).powi(2);
+        for &d0 in &delta0[r..r + k] {
+            scale2 += (rho * d0).powi(2);
+        }
         let l = [
             lambda[r],
             if k == 3 { lambda[r + 1] } else { 0.0 },
