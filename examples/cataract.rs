@@ -184,10 +184,15 @@ fn headless(args: &Args, params: &CataractParams, config: SoftTissueConfig) -> E
                 "step",
             ];
             println!(
-                "time per phase (ms): median over all steps, mean over steps with 50-90 contacts"
+                "time per phase (ms): median over all steps, mean over steps with 50-90 contacts, mean over the jam (> 90)"
             );
-            for ((n, v), b) in names.iter().zip(s.median_ms).zip(s.mean_ms_50_90) {
-                println!("  {n:<12} {v:8.3} {b:8.3}");
+            for (((n, v), b), j) in names
+                .iter()
+                .zip(s.median_ms)
+                .zip(s.mean_ms_50_90)
+                .zip(s.mean_ms_jam)
+            {
+                println!("  {n:<12} {v:8.3} {b:8.3} {j:8.3}");
             }
             println!("steps/s (median step): {:.1}", s.steps_per_second);
             match s.median_ms_50_90 {
@@ -210,8 +215,8 @@ fn headless(args: &Args, params: &CataractParams, config: SoftTissueConfig) -> E
                 s.lcp_50_90.0, s.lcp_50_90.1
             );
             println!(
-                "contact passes: at most {} in a step, more than eight in {} steps",
-                s.max_passes.0, s.max_passes.1
+                "contact passes: at most {} in a step, more than eight in {} steps, mean {:.2} over the jam",
+                s.max_passes.0, s.max_passes.1, s.passes_jam
             );
             println!(
                 "LCP sweeps (first pass): at most {}, mean {:.1} over the jam steps; solves at the sweep limit: {}",

@@ -46,6 +46,10 @@ pub struct HeadlessSummary {
     /// Mean milliseconds per phase (same order as [`Self::median_ms`]) over the
     /// steps with 50–90 contacts: where the time of those steps goes.
     pub mean_ms_50_90: [f64; 8],
+    /// Mean milliseconds per phase over the jam steps (more than 90 contacts).
+    pub mean_ms_jam: [f64; 8],
+    /// Mean contact passes per jam step.
+    pub passes_jam: f64,
     /// Mean CG iterations per step (both bodies) over the steps with 50–90 contacts.
     pub cg_iterations_50_90: f64,
     /// Mean LCP sweeps and contact passes per step over the steps with 50–90 contacts.
@@ -148,6 +152,8 @@ pub fn run_headless_recording(
     let mut contacts = Vec::new();
     let mut band = Vec::new();
     let mut band_sum = [0.0f64; 8];
+    let mut jam_sum = [0.0f64; 8];
+    let mut jam_passes = 0usize;
     let mut band_cg = 0usize;
     let mut band_lcp = (0usize, 0usize);
     let mut cg = 0usize;
@@ -196,6 +202,10 @@ pub fn run_headless_recording(
         if d.contacts > 90 {
             jam.push(d.step_ms());
             lcp_sweeps.1 += d.lcp_first_iterations;
+            jam_passes += d.contact_passes;
+            for (acc, x) in jam_sum.iter_mut().zip(v) {
+                *acc += x;
+            }
         }
         if let Some(r) = recording
             && let Some(p) = app
@@ -277,6 +287,8 @@ pub fn run_headless_recording(
         lens_center: (start, end),
         max_lens_speed,
         mean_ms_50_90: band_sum.map(|x| x / band_steps),
+        mean_ms_jam: jam_sum.map(|x| x / jam.len().max(1) as f64),
+        passes_jam: jam_passes as f64 / jam.len().max(1) as f64,
         cg_iterations_50_90: band_cg as f64 / band_steps,
         lcp_50_90: (
             band_lcp.0 as f64 / band_steps,
