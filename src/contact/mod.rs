@@ -34,8 +34,9 @@
 //!    — one normal row per contact, plus two tangent rows when `μ > 0` — and
 //!    `W = Σ_bodies h² H A⁻¹ Hᵀ`, per body with its [`ComplianceMode`].
 //! 3. **LCP** ([`ContactSolver::solve_lcp`]): Signorini contact with a
-//!    circular Coulomb cone ([`lcp`]; block Gauss–Seidel with NNCG by
-//!    default, [`LcpSolver`]), warm-started in the first pass.
+//!    circular Coulomb cone ([`lcp`]; by default block Gauss–Seidel with a
+//!    semismooth Newton step on the active set, [`LcpSolver::Subspace`]),
+//!    warm-started in the first pass.
 //! 4. **Correct** ([`ContactSolver::correct`]): `Δx = h² A⁻¹ Hᵀ λ` with the
 //!    same approximation of `A⁻¹` as `W`, `Δv = Δx / h`, and the reaction on
 //!    each tool.

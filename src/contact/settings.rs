@@ -18,7 +18,7 @@ pub struct ContactSettings {
     pub body_friction: f64,
     /// Friction on or off for the whole scene (off: μ = 0 everywhere, no tangent rows).
     pub friction: bool,
-    /// Gauss–Seidel settings.
+    /// The LCP solver and its tolerances.
     pub lcp: LcpSettings,
     /// Maximum contact passes per step. After the first correction, detection
     /// runs again; while some vertex still penetrates deeper than
@@ -86,29 +86,16 @@ impl ContactSettings {
     pub fn validate(&self) -> Result<()> {
         check_positive("alarm_distance", self.alarm_distance)?;
         crate::error::check_range("body_friction", self.body_friction, 0.0, 1e6)?;
-        let t = self.lcp.tolerance;
-        if !(t.is_finite() && t >= 0.0) {
-            return Err(SoftTissueError::InvalidParameter {
-                name: "lcp.tolerance",
-                value: t,
-                reason: "must be finite and non-negative (0: off)",
-            });
-        }
-        let rt = self.lcp.residual_tolerance;
-        if !(rt.is_finite() && rt >= 0.0) {
-            return Err(SoftTissueError::InvalidParameter {
-                name: "lcp.residual_tolerance",
-                value: rt,
-                reason: "must be finite and non-negative (0: off)",
-            });
-        }
-        let dt = self.lcp.displacement_tolerance;
-        if !(dt.is_finite() && dt >= 0.0) {
-            return Err(SoftTissueError::InvalidParameter {
-                name: "lcp.displacement_tolerance",
-                value: dt,
-                reason: "must be finite and non-negative",
-            });
+        // The LCP's stopping tests: each finite and non-negative (0: off).
+        for (name, value) in [
+            ("lcp.tolerance", self.lcp.tolerance),
+            ("lcp.residual_tolerance", self.lcp.residual_tolerance),
+            (
+                "lcp.displacement_tolerance",
+                self.lcp.displacement_tolerance,
+            ),
+        ] {
+            crate::error::check_range(name, value, 0.0, f64::MAX)?;
         }
         if !(self.lcp.over_relaxation > 0.0 && self.lcp.over_relaxation < 2.0) {
             return Err(SoftTissueError::InvalidParameter {

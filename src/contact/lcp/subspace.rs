@@ -321,37 +321,12 @@ fn solve_newton(w: &[f64], m: usize, s: &mut SubspaceScratch) -> Option<()> {
     while i < n {
         let r = s.free[i];
         let sl = s.slide.get(r).copied().flatten();
+        // δ_r = 0, also for the normal row of a sliding contact.
+        delta_row(w, m, r, i, s);
         let Some(sl) = sl.filter(|sl| sl.full) else {
-            // δ_r = 0: row r of W over the free columns; the column of a
-            // following sliding normal also carries its tangential force.
-            let row = &w[r * m..(r + 1) * m];
-            for (j, &cj) in s.free.iter().enumerate() {
-                let mut v = row[cj];
-                if let Some(Slide {
-                    p, mu, full: false, ..
-                }) = s.slide[cj]
-                {
-                    v += mu * (p[0] * row[cj + 1] + p[1] * row[cj + 2]);
-                }
-                s.mat[j * n + i] = v;
-            }
-            s.rhs[i] = -s.delta[r];
             i += 1;
             continue;
         };
-        // Normal row of a sliding contact: δ_r = 0.
-        let row = &w[r * m..(r + 1) * m];
-        for (j, &cj) in s.free.iter().enumerate() {
-            let mut v = row[cj];
-            if let Some(Slide {
-                p, mu, full: false, ..
-            }) = s.slide[cj]
-            {
-                v += mu * (p[0] * row[cj + 1] + p[1] * row[cj + 2]);
-            }
-            s.mat[j * n + i] = v;
-        }
-        s.rhs[i] = -s.delta[r];
         // Tangential rows i+1, i+2 (free rows r+1, r+2):
         // (I − κQ) Δλ_t − μ P Δλ_n + κρ Q W_t· Δλ = −(λ_t − μ λ_n P).
         let Slide {
@@ -412,6 +387,28 @@ fn solve_newton(w: &[f64], m: usize, s: &mut SubspaceScratch) -> Option<()> {
     let rhs = MatMut::from_column_major_slice_mut(&mut s.rhs, n, 1);
     lu::solve::solve_in_place(lu, lu, perm, rhs, Par::Seq, MemStack::new(&mut s.mem));
     s.rhs.iter().all(|v| v.is_finite()).then_some(())
+}
+
+/// Equation `i` of the Newton matrix, `δ_r = 0`: row `r` of `W` over the free
+/// columns, where the column of a phase-1 sliding normal also carries its
+/// tangential force (`μ P` along the tangential rows).
+fn delta_row(w: &[f64], m: usize, r: usize, i: usize, s: &mut SubspaceScratch) {
+    let n = s.free.len();
+    let row = &w[r * m..(r + 1) * m];
+    for (j, &cj) in s.free.iter().enumerate() {
+        // A shift of 1e-10 of the diagonal keeps nearly dependent rows (several
+        // contacts sharing nodes) from giving huge forces along a near-null
+        // direction of W.
+        let mut v = row[cj] * if j == i { 1.0 + 1e-10 } else { 1.0 };
+        if let Some(Slide {
+            p, mu, full: false, ..
+        }) = s.slide[cj]
+        {
+            v += mu * (p[0] * row[cj + 1] + p[1] * row[cj + 2]);
+        }
+        s.mat[j * n + i] = v;
+    }
+    s.rhs[i] = -s.delta[r];
 }
 
 /// Puts every contact of the candidate back into its cone.

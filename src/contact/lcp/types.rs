@@ -147,7 +147,7 @@ pub fn residual(
     delta: &[f64],
 ) -> f64 {
     let m = delta0.len();
-    let (mut res2, mut force2, mut scale2) = (0.0, 0.0, 0.0);
+    let (mut res2, mut scale2) = (0.0, 0.0);
     for c in 0..rows.len().saturating_sub(1) {
         let r = rows[c];
         let k = rows[c + 1] - r;
@@ -164,7 +164,6 @@ pub fn residual(
             if k == 3 { lambda[r + 1] } else { 0.0 },
             if k == 3 { lambda[r + 2] } else { 0.0 },
         ];
-        force2 += l[0] * l[0] + l[1] * l[1] + l[2] * l[2];
         let contact_mu = if k == 3 { mu[c] } else { 0.0 };
         let e = if contact_mu > 0.0 {
             let (d1, d2) = (delta[r + 1], delta[r + 2]);
@@ -178,5 +177,5 @@ pub fn residual(
         };
         res2 += e[0] * e[0] + e[1] * e[1] + e[2] * e[2];
     }
-    res2.sqrt() / force2.max(scale2).sqrt().max(1e-300)
+    res2.sqrt() / scale2.sqrt().max(1e-300)
 }
