@@ -105,6 +105,10 @@ fn body_falls_onto_fixed_tool_and_stays_above_it() {
     let d = w.resource::<SoftTissueDiagnostics>();
     assert!(d.detect_runs > 0 && d.lcp_solves > 0);
     assert_eq!(d.errors, 0);
+    // The step's first LCP ran and met its residual, or was counted at its limit.
+    assert!(d.lcp_first_iterations >= 1);
+    let target = SoftTissueConfig::default().contact.lcp.residual_tolerance;
+    assert!(d.lcp_relative_residual <= target || d.lcp_capped > 0);
     // Bevy's store has the measurements.
     let store = w.resource::<DiagnosticsStore>();
     let step = store
