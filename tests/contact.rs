@@ -333,3 +333,6 @@ mod response;
 
 #[path = "contact/lcp.rs"]
 mod lcp;
+
+#[path = "shared/fuzz.rs"]
+mod fuzz;

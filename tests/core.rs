@@ -184,3 +184,6 @@ mod inputs_and_rotations;
 /// Tests: elastic response, convergence, preconditioners, the factorizer.
 #[path = "core/physics.rs"]
 mod physics;
+
+#[path = "shared/fuzz.rs"]
+mod fuzz;

@@ -101,8 +101,9 @@ pub struct ContactSolver {
     lambda: Vec<f64>,
     lcp_scratch: LcpScratch,
     warm: WarmStart,
-    /// First-pass problems with at least this many contacts are kept for
-    /// [`Self::take_recorded_problem`].
+    /// First-pass problems with at least this many contacts, and every solve
+    /// that ran to its sweep limit, are kept for
+    /// [`Self::take_recorded_problem`] (see [`Self::record_problems`]).
     record_from: Option<usize>,
     recorded: Option<ContactProblem>,
     dx: Vec<Vec<Vec3>>,
@@ -433,13 +434,9 @@ impl ContactSolver {
             let keys = self.contacts.iter().map(|c| Self::key(c, bodies));
             self.warm.apply(keys, &self.jac.rows, &mut self.lambda);
         }
-        let problem = self.record_from.map(|_| ContactProblem {
-            w: self.w.clone(),
-            delta0: self.jac.delta0.clone(),
-            rows: self.jac.rows.clone(),
-            mu: self.jac.mu.clone(),
-            lambda0: self.lambda.clone(),
-        });
+        // The start, if recording: the solve overwrites it, and whether the
+        // problem is kept is known only after (a solve at its sweep limit).
+        let lambda0 = self.record_from.map(|_| self.lambda.clone());
         let report = lcp::solve(
             &self.w,
             &self.jac.delta0,
@@ -449,11 +446,17 @@ impl ContactSolver {
             &self.settings.lcp,
             &mut self.lcp_scratch,
         );
-        if let Some(p) = problem
+        if let Some(lambda0) = lambda0
             && (report.capped
                 || first && self.record_from.is_some_and(|n| self.contacts.len() >= n))
         {
-            self.recorded = Some(p);
+            self.recorded = Some(ContactProblem {
+                w: self.w.clone(),
+                delta0: self.jac.delta0.clone(),
+                rows: self.jac.rows.clone(),
+                mu: self.jac.mu.clone(),
+                lambda0,
+            });
         }
         if first {
             self.warm.clear();

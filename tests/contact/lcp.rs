@@ -4,21 +4,9 @@
 //! recorded-problem file format.
 
 use super::*;
+use crate::fuzz::seeded;
 use bevy_soft_tissue::contact::lcp::{self, ContactProblem};
 use proptest::prelude::*;
-use proptest::test_runner::{Config as ProptestConfig, RngSeed};
-
-/// `cases` per property, or `PROPTEST_CASES`; a fixed seed
-/// (`PROPTEST_RNG_SEED` overrides it), as the loader fuzzing in `tests/core`.
-fn seeded(cases: u32) -> ProptestConfig {
-    let env = |k: &str| std::env::var(k).ok().and_then(|v| v.parse::<u64>().ok());
-    ProptestConfig {
-        cases: env("PROPTEST_CASES").map_or(cases, |c| c as u32),
-        rng_seed: RngSeed::Fixed(env("PROPTEST_RNG_SEED").unwrap_or(20_261_123)),
-        failure_persistence: None,
-        ..ProptestConfig::default()
-    }
-}
 
 const SOLVERS: [LcpSolver; 4] = [
     LcpSolver::ProjectedGaussSeidel,

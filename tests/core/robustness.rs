@@ -3,27 +3,12 @@
 //! and the background factorizer.
 
 use super::*;
+use crate::fuzz::seeded;
 use proptest::prelude::*;
-use proptest::test_runner::{Config as ProptestConfig, RngSeed};
 
-/// Cases per fuzz property: `PROPTEST_CASES`, or 2500 (× 5 properties, about
-/// 10⁴ cases per CI run), with a fixed seed (`PROPTEST_RNG_SEED` overrides it).
-fn fuzz_config() -> ProptestConfig {
-    let cases = std::env::var("PROPTEST_CASES")
-        .ok()
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(2500);
-    let seed = std::env::var("PROPTEST_RNG_SEED")
-        .ok()
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(20_261_123);
-    ProptestConfig {
-        cases,
-        rng_seed: RngSeed::Fixed(seed),
-        failure_persistence: None,
-        ..ProptestConfig::default()
-    }
-}
+/// Cases per loader fuzz property: 2500 (× 5 properties, about 10⁴ cases per
+/// CI run), or `PROPTEST_CASES`.
+const FUZZ_CASES: u32 = 2500;
 
 /// An ASCII MSH 4.1 file with the given node blocks (tags, positions) and tetrahedra (tags).
 fn msh_ascii(blocks: &[(Vec<u64>, Vec<Vec3>)], tets: &[[u64; 4]]) -> String {
@@ -457,7 +442,7 @@ fn sample_mesh() -> TetMesh {
 }
 
 proptest! {
-    #![proptest_config(fuzz_config())]
+    #![proptest_config(seeded(FUZZ_CASES))]
 
     #[test]
     fn fuzz_msh_ascii(muts in prop::collection::vec(mutation(), 1..4)) {

@@ -66,9 +66,6 @@ struct Slide {
     rho: f64,
     /// Friction coefficient.
     mu: f64,
-    /// Whether the tangential forces are free (Alart–Curnier) or follow the
-    /// normal force along `P` (`λ_t = μ λ_n P`, only `λ_n` free).
-    full: bool,
 }
 
 /// A contact's class in the active set (on its normal row).
@@ -154,13 +151,11 @@ pub(super) fn step(
             break;
         }
         exact_delta(w, delta0, &s.lambda, &mut s.delta);
-        solve_newton(w, m, s)?;
+        solve_newton(w, m, s, full)?;
         for (&r, &d) in s.free.iter().zip(&s.rhs) {
             s.lambda[r] += d;
-            if let Some(Slide {
-                p, mu, full: false, ..
-            }) = s.slide[r]
-            {
+            // Phase 1: a sliding contact's tangential force follows its normal force.
+            if let (false, Some(Slide { p, mu, .. })) = (full, s.slide[r]) {
                 let k = mu * s.lambda[r];
                 s.lambda[r + 1] = k * p[0];
                 s.lambda[r + 2] = k * p[1];
@@ -289,7 +284,6 @@ fn classify(
                     },
                     rho,
                     mu,
-                    full,
                 });
                 if full {
                     s.free.extend([r, r + 1, r + 2]);
@@ -308,8 +302,9 @@ fn classify(
 /// Step 2: builds the Newton matrix over the free rows and solves it into
 /// `s.rhs`. Row `i` of the matrix is free row `r_i`'s equation: `δ_{r_i} = 0`,
 /// or for the tangential rows of a sliding contact the linearized
-/// `λ_t − μ λ_n P = 0`.
-fn solve_newton(w: &[f64], m: usize, s: &mut SubspaceScratch) -> Option<()> {
+/// `λ_t − μ λ_n P = 0` (phase 2, `full`; in phase 1 a sliding contact has
+/// only its normal row free).
+fn solve_newton(w: &[f64], m: usize, s: &mut SubspaceScratch, full: bool) -> Option<()> {
     let n = s.free.len();
     s.mat.clear();
     s.mat.resize(n * n, 0.0);
@@ -320,10 +315,9 @@ fn solve_newton(w: &[f64], m: usize, s: &mut SubspaceScratch) -> Option<()> {
     let mut i = 0;
     while i < n {
         let r = s.free[i];
-        let sl = s.slide.get(r).copied().flatten();
         // δ_r = 0, also for the normal row of a sliding contact.
-        delta_row(w, m, r, i, s);
-        let Some(sl) = sl.filter(|sl| sl.full) else {
+        delta_row(w, m, r, i, s, full);
+        let Some(sl) = s.slide.get(r).copied().flatten().filter(|_| full) else {
             i += 1;
             continue;
         };
@@ -341,19 +335,7 @@ fn solve_newton(w: &[f64], m: usize, s: &mut SubspaceScratch) -> Option<()> {
             let ik = i + 1 + k;
             let (a, b) = (kappa * rho * q[k][0], kappa * rho * q[k][1]);
             for (j, &cj) in s.free.iter().enumerate() {
-                let mut v = a * w1[cj] + b * w2[cj];
-                if let Some(Slide {
-                    p: pj,
-                    mu: muj,
-                    full: false,
-                    ..
-                }) = s.slide[cj]
-                {
-                    let (c1, c2) = (cj + 1, cj + 2);
-                    v += muj
-                        * (pj[0] * (a * w1[c1] + b * w2[c1]) + pj[1] * (a * w1[c2] + b * w2[c2]));
-                }
-                s.mat[j * n + ik] = v;
+                s.mat[j * n + ik] = a * w1[cj] + b * w2[cj];
             }
             // The λ part: columns i (λ_n), i+1, i+2 (λ_t).
             s.mat[i * n + ik] -= mu * p[k];
@@ -390,9 +372,9 @@ fn solve_newton(w: &[f64], m: usize, s: &mut SubspaceScratch) -> Option<()> {
 }
 
 /// Equation `i` of the Newton matrix, `δ_r = 0`: row `r` of `W` over the free
-/// columns, where the column of a phase-1 sliding normal also carries its
-/// tangential force (`μ P` along the tangential rows).
-fn delta_row(w: &[f64], m: usize, r: usize, i: usize, s: &mut SubspaceScratch) {
+/// columns, where in phase 1 (`!full`) the column of a sliding normal also
+/// carries its tangential force (`μ P` along the tangential rows).
+fn delta_row(w: &[f64], m: usize, r: usize, i: usize, s: &mut SubspaceScratch, full: bool) {
     let n = s.free.len();
     let row = &w[r * m..(r + 1) * m];
     for (j, &cj) in s.free.iter().enumerate() {
@@ -400,10 +382,7 @@ fn delta_row(w: &[f64], m: usize, r: usize, i: usize, s: &mut SubspaceScratch) {
         // contacts sharing nodes) from giving huge forces along a near-null
         // direction of W.
         let mut v = row[cj] * if j == i { 1.0 + 1e-10 } else { 1.0 };
-        if let Some(Slide {
-            p, mu, full: false, ..
-        }) = s.slide[cj]
-        {
+        if let (false, Some(Slide { p, mu, .. })) = (full, s.slide[cj]) {
             v += mu * (p[0] * row[cj + 1] + p[1] * row[cj + 2]);
         }
         s.mat[j * n + i] = v;
