@@ -59,7 +59,7 @@ pub struct ContactSettings {
     /// and the correction shoots the tissue off. When the ratio leaves
     /// `[1 / (1 + tol), 1 + tol]` the body's matrix is factorized now and the
     /// pass's `W`, LCP and correction are redone with it (counted in
-    /// [`super::ContactReport::consistency_refactors`]). Default 0.25;
+    /// [`super::ContactReport::consistency_refactors`]). Default 0.1;
     /// `f64::INFINITY` never refreshes.
     pub consistency_tolerance: f64,
 }
