@@ -7,7 +7,7 @@ import the sibling file that defines an item, not their parent's re-export."""
 import os, re, sys
 
 ROOT = os.path.join(os.path.dirname(__file__), "..", "src")
-LAYERS = ["math", "error", "mesh", "material", "fem", "solver", "body", "contact", "scene"]
+LAYERS = ["math", "error", "mesh", "material", "fem", "solver", "body", "contact", "scene", "haptics"]
 RANK = {m: i for i, m in enumerate(LAYERS)}
 RANK["error"] = RANK["math"]
 

@@ -50,6 +50,7 @@ pub mod error;
 pub mod fem;
 #[cfg(feature = "gpu")]
 pub mod gpu;
+pub mod haptics;
 pub mod material;
 pub mod math;
 pub mod mesh;

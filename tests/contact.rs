@@ -336,3 +336,6 @@ mod lcp;
 
 #[path = "shared/fuzz.rs"]
 mod fuzz;
+
+#[path = "contact/haptics.rs"]
+mod haptics;

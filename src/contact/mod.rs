@@ -62,6 +62,7 @@ pub mod lcp;
 pub mod predict;
 mod settings;
 pub mod tool;
+mod tool_problem;
 mod types;
 
 use std::time::Instant;
@@ -73,6 +74,7 @@ pub use compliance::{BodyCompliance, ComplianceBackend, ComplianceMode, FactorKe
 pub use lcp::{LcpReport, LcpSettings, LcpSolver};
 pub use settings::ContactSettings;
 pub use tool::{Pose, RigidTool, ToolShape};
+pub use tool_problem::ToolContactProblem;
 pub use types::{Contact, ContactOther, ContactReport, ContactSide, PassKind, tangent_basis};
 
 use crate::error::{Result, SoftTissueError, check_timestep};
@@ -111,6 +113,10 @@ pub struct ContactSolver {
     /// Per body index, per node: the contact force of the step, all passes.
     node_forces: Vec<Vec<Vec3>>,
     report: ContactReport,
+    /// The tool whose contact problem is kept (see [`Self::capture_tool`]).
+    captured_tool: Option<usize>,
+    tool_problem: ToolContactProblem,
+    selected: Vec<usize>,
     h: f64,
     /// First passes so far (the prediction's step count).
     steps: u64,
@@ -124,6 +130,22 @@ impl ContactSolver {
             settings,
             ..Default::default()
         })
+    }
+
+    /// Keeps, after every step, the contact problem of tool `tool` (its
+    /// index in the tools given to the phases) linearized in its pose, for a
+    /// haptic loop ([`Self::tool_problem`], [`ToolContactProblem`]); `None`
+    /// (the default) keeps none. It costs a copy of the tool rows' block of
+    /// `W` per step.
+    pub fn capture_tool(&mut self, tool: Option<usize>) {
+        self.captured_tool = tool;
+        self.tool_problem.clear();
+    }
+
+    /// The contact problem of the tool chosen with [`Self::capture_tool`] at
+    /// the last step (empty when it touched nothing).
+    pub fn tool_problem(&self) -> &ToolContactProblem {
+        &self.tool_problem
     }
 
     /// Keeps a copy of every first-pass contact problem with at least
@@ -266,6 +288,8 @@ impl ContactSolver {
             PassKind::First => {
                 self.report = ContactReport::default();
                 self.steps += 1;
+                self.tool_problem.clear();
+                self.tool_problem.step = self.steps;
                 self.node_forces.resize_with(bodies.len(), Vec::new);
                 for (i, f) in self.node_forces.iter_mut().enumerate() {
                     f.clear();
@@ -509,6 +533,24 @@ impl ContactSolver {
             }
         }
         correct::tool_reactions(tools, &self.contacts, pass);
+        if let Some(ti) = self.captured_tool.filter(|&ti| ti < tools.len()) {
+            let tool = tools.tool(ti);
+            if pass == PassKind::First {
+                self.tool_problem.capture(
+                    self.steps,
+                    ti,
+                    tool,
+                    &self.contacts,
+                    &self.jac.rows,
+                    &self.w,
+                    &self.jac.delta0,
+                    &self.lambda,
+                    &mut self.selected,
+                );
+            }
+            let (f, t) = tool.reaction();
+            self.tool_problem.set_reaction(f, t);
+        }
         self.report.correct += t0.elapsed().as_secs_f64();
         Ok(())
     }

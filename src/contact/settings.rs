@@ -86,24 +86,7 @@ impl ContactSettings {
     pub fn validate(&self) -> Result<()> {
         check_positive("alarm_distance", self.alarm_distance)?;
         crate::error::check_range("body_friction", self.body_friction, 0.0, 1e6)?;
-        // The LCP's stopping tests: each finite and non-negative (0: off).
-        for (name, value) in [
-            ("lcp.tolerance", self.lcp.tolerance),
-            ("lcp.residual_tolerance", self.lcp.residual_tolerance),
-            (
-                "lcp.displacement_tolerance",
-                self.lcp.displacement_tolerance,
-            ),
-        ] {
-            crate::error::check_range(name, value, 0.0, f64::MAX)?;
-        }
-        if !(self.lcp.over_relaxation > 0.0 && self.lcp.over_relaxation < 2.0) {
-            return Err(SoftTissueError::InvalidParameter {
-                name: "lcp.over_relaxation",
-                value: self.lcp.over_relaxation,
-                reason: "must lie in (0, 2)",
-            });
-        }
+        self.lcp.validate()?;
         check_positive("penetration_tolerance", self.penetration_tolerance)?;
         if self.consistency_tolerance.is_nan() || self.consistency_tolerance <= 0.0 {
             return Err(SoftTissueError::InvalidParameter {
@@ -115,13 +98,6 @@ impl ContactSettings {
         if self.max_passes == 0 {
             return Err(SoftTissueError::InvalidParameter {
                 name: "max_passes",
-                value: 0.0,
-                reason: "must be ≥ 1",
-            });
-        }
-        if self.lcp.max_iterations == 0 {
-            return Err(SoftTissueError::InvalidParameter {
-                name: "lcp.max_iterations",
                 value: 0.0,
                 reason: "must be ≥ 1",
             });

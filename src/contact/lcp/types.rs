@@ -1,6 +1,8 @@
 //! The LCP's settings, report and the pieces every solver shares: the
 //! residual, the cone projection and the dense kernels.
 
+use crate::error::{Result, SoftTissueError, check_range};
+
 /// Which algorithm solves the contact LCP.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum LcpSolver {
@@ -44,6 +46,35 @@ pub struct LcpSettings {
     pub over_relaxation: f64,
     /// Start from the previous step's forces of persisting contacts.
     pub warm_start: bool,
+}
+
+impl LcpSettings {
+    /// Checks the parameters (names as fields of `ContactSettings::lcp`).
+    pub fn validate(&self) -> Result<()> {
+        // The stopping tests: each finite and non-negative (0: off).
+        for (name, value) in [
+            ("lcp.tolerance", self.tolerance),
+            ("lcp.residual_tolerance", self.residual_tolerance),
+            ("lcp.displacement_tolerance", self.displacement_tolerance),
+        ] {
+            check_range(name, value, 0.0, f64::MAX)?;
+        }
+        if !(self.over_relaxation > 0.0 && self.over_relaxation < 2.0) {
+            return Err(SoftTissueError::InvalidParameter {
+                name: "lcp.over_relaxation",
+                value: self.over_relaxation,
+                reason: "must lie in (0, 2)",
+            });
+        }
+        if self.max_iterations == 0 {
+            return Err(SoftTissueError::InvalidParameter {
+                name: "lcp.max_iterations",
+                value: 0.0,
+                reason: "must be ≥ 1",
+            });
+        }
+        Ok(())
+    }
 }
 
 impl Default for LcpSettings {
