@@ -5,8 +5,8 @@ use std::time::Instant;
 
 use nalgebra::{Isometry3, Translation3, UnitQuaternion};
 
-use super::HapticSettings;
 use super::device::DeviceLimits;
+use super::types::HapticSettings;
 use crate::contact::lcp::{self, LcpScratch, LcpSettings};
 use crate::contact::{Pose, ToolContactProblem};
 use crate::math::Vec3;

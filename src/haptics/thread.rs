@@ -9,7 +9,7 @@ use std::time::{Duration, Instant};
 use super::device::HapticDevice;
 use super::mailbox::Mailbox;
 use super::render::{HapticProblem, HapticRenderer};
-use super::{HapticSettings, HapticState, HapticStats};
+use super::types::{HapticSettings, HapticState, HapticStats};
 use crate::contact::ToolContactProblem;
 use crate::error::{Result, SoftTissueError};
 use crate::math::Vec3;
