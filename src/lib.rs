@@ -80,7 +80,8 @@ pub mod prelude {
     pub use crate::mesh::{Surface, TetMesh, ValidateOptions, generate, io};
     #[cfg(feature = "bevy")]
     pub use crate::plugin::{
-        BodyContacts, ComplianceOverride, FailedPhase, FixedNodes, GpuMode, PreconditionerOverride,
+        BodyContacts, ComplianceOverride, FailedPhase, FixedNodes, GpuMode, HapticTool,
+        HapticsPlugin, HapticsStatus, PreconditionerOverride,
         SoftBody, SoftBodyError, SoftBodyFailed, SoftBodyFromAsset, SoftTissueConfig,
         SoftTissueContacts, SoftTissueDiagnostics, SoftTissuePlugins, SoftTissueSystems,
         TetMeshAsset, Tool, ToolReaction,

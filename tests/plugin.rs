@@ -718,3 +718,87 @@ fn a_body_removed_mid_pipeline_is_reported_not_stale() {
         .fold(f64::INFINITY, f64::min);
     assert!(min_z > -1e-5, "{min_z}");
 }
+
+/// A device that reports when it is dropped.
+struct DropFlag {
+    inner: bevy_soft_tissue::haptics::SimulatedDevice,
+    dropped: std::sync::Arc<std::sync::atomic::AtomicBool>,
+}
+
+impl bevy_soft_tissue::haptics::HapticDevice for DropFlag {
+    fn pose(&mut self, time: f64) -> bevy_soft_tissue::contact::Pose {
+        self.inner.pose(time)
+    }
+    fn set_output(&mut self, f: bevy_soft_tissue::math::Vec3, t: bevy_soft_tissue::math::Vec3) {
+        self.inner.set_output(f, t);
+    }
+}
+
+impl Drop for DropFlag {
+    fn drop(&mut self) {
+        self.dropped.store(true, Ordering::SeqCst);
+    }
+}
+
+/// `HapticsPlugin`: a scripted device presses a sphere into a cube resting
+/// on a plate; the tool follows the coupled pose, the force pushes the tool
+/// back, the status and diagnostics fill, and dropping the app stops the
+/// haptic thread and releases the device.
+#[test]
+fn a_haptic_device_drives_a_tool_and_stops_with_the_app() {
+    use bevy_soft_tissue::haptics::{HapticSettings, SimulatedDevice};
+    use bevy_soft_tissue::plugin::{HapticTool, HapticsPlugin, HapticsStatus, haptic_paths};
+    let mut app = app(SoftTissueConfig {
+        timestep: H,
+        gravity: Some(bevy::math::DVec3::new(0.0, 0.0, -9.81)),
+        ..Default::default()
+    });
+    let dropped = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let (top, radius) = (8e-3, 4e-3);
+    let target = nalgebra::Isometry3::translation(0.0, 0.0, top + radius - 1e-3);
+    let device = DropFlag {
+        inner: SimulatedDevice::scripted(move |_| target),
+        dropped: dropped.clone(),
+    };
+    let settings = HapticSettings::default();
+    app.add_plugins(HapticsPlugin::new(device, settings));
+    app.world_mut().spawn(cube(4e-3, 3, 0.0));
+    spawn_plate(&mut app);
+    let tool = app
+        .world_mut()
+        .spawn((
+            Tool::new(ToolShape::Sphere { radius }, 0.0).unwrap(),
+            Transform::from_xyz(0.0, 0.0, (top + 2.0 * radius) as f32),
+            HapticTool,
+        ))
+        .id();
+    for _ in 0..60 {
+        steps(&mut app, 1);
+        std::thread::sleep(Duration::from_millis(2));
+    }
+    let w = app.world();
+    let status = w.resource::<HapticsStatus>();
+    assert!(status.running, "{:?}", status.error);
+    let s = status.state;
+    assert!(s.stats.ticks > 10 && s.stats.problems > 10, "{:?}", s.stats);
+    assert!(s.contacts > 0, "the sphere touches the cube");
+    assert!(s.force.z > 0.0, "the tissue pushes the tool back: {}", s.force);
+    // The tool stands where the coupling and the contact balance: above the
+    // device by the force over the coupling's stiffness.
+    let tf = w.get::<Transform>(tool).unwrap();
+    let lift = tf.translation.z as f64 - target.translation.vector.z;
+    let expected = s.contact_force.z / settings.coupling.stiffness;
+    assert!(
+        (lift - expected).abs() <= 0.1 * expected + 1e-6,
+        "proxy lift {lift} vs F/k {expected}"
+    );
+    assert!(w.get::<ToolReaction>(tool).unwrap().force.z > 0.0);
+    let rate = w
+        .resource::<DiagnosticsStore>()
+        .get(&haptic_paths::RATE)
+        .and_then(|d| d.value());
+    assert!(rate.is_some_and(|r| r > 0.0), "{rate:?}");
+    assert!(!dropped.load(Ordering::SeqCst));
+    drop(app);
+    assert!(dropped.load(Ordering::SeqCst), "the haptic thread stopped");
+}

@@ -32,6 +32,9 @@
 //! | [`SoftTissueDiagnosticsPlugin`] | `diagnostics.rs` | [`SoftTissueDiagnostics`] → `DiagnosticsStore` |
 //! | [`MeshAssetPlugin`] | `assets.rs` | `.msh` / TetGen loader, [`SoftBodyFromAsset`] |
 //!
+//! [`HapticsPlugin`] (`haptics.rs`) is not in the group: it takes a device. It drives
+//! the [`HapticTool`] from the core's haptic loop ([`crate::haptics`]).
+//!
 //! Settings live in `config.rs` ([`SoftTissueConfig`], one home per setting),
 //! components in `components.rs`, the sets in `sets.rs`, and the contact
 //! phases see the ECS through `views.rs` (no per-step collections). Files
@@ -69,6 +72,7 @@ mod config;
 mod contact;
 mod deformation;
 mod diagnostics;
+mod haptics;
 #[cfg(feature = "viewer")]
 pub mod render;
 mod schedule;
@@ -93,6 +97,7 @@ pub use deformation::DeformationPlugin;
 pub use diagnostics::{
     SoftTissueDiagnostics, SoftTissueDiagnosticsPlugin, paths as diagnostics_paths,
 };
+pub use haptics::{HapticTool, HapticsPlugin, HapticsStatus, haptic_paths};
 pub use schedule::SoftTissueSchedulePlugin;
 pub use sets::SoftTissueSystems;
 pub use sync::SyncPlugin;
