@@ -81,10 +81,10 @@ pub mod prelude {
     #[cfg(feature = "bevy")]
     pub use crate::plugin::{
         BodyContacts, ComplianceOverride, FailedPhase, FixedNodes, GpuMode, HapticTool,
-        HapticsPlugin, HapticsStatus, PreconditionerOverride,
-        SoftBody, SoftBodyError, SoftBodyFailed, SoftBodyFromAsset, SoftTissueConfig,
-        SoftTissueContacts, SoftTissueDiagnostics, SoftTissuePlugins, SoftTissueSystems,
-        TetMeshAsset, Tool, ToolReaction,
+        HapticsPlugin, HapticsStatus, PreconditionerOverride, SoftBody, SoftBodyError,
+        SoftBodyFailed, SoftBodyFromAsset, SoftTissueConfig, SoftTissueContacts,
+        SoftTissueDiagnostics, SoftTissuePlugins, SoftTissueSystems, TetMeshAsset, Tool,
+        ToolReaction,
     };
     pub use crate::scene::Scene;
     pub use crate::solver::PreconditionerKind;

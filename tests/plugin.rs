@@ -782,7 +782,11 @@ fn a_haptic_device_drives_a_tool_and_stops_with_the_app() {
     let s = status.state;
     assert!(s.stats.ticks > 10 && s.stats.problems > 10, "{:?}", s.stats);
     assert!(s.contacts > 0, "the sphere touches the cube");
-    assert!(s.force.z > 0.0, "the tissue pushes the tool back: {}", s.force);
+    assert!(
+        s.force.z > 0.0,
+        "the tissue pushes the tool back: {}",
+        s.force
+    );
     // The tool stands where the coupling and the contact balance: above the
     // device by the force over the coupling's stiffness.
     let tf = w.get::<Transform>(tool).unwrap();

@@ -16,6 +16,43 @@ use crate::math::Vec3;
 
 /// Tick times kept for the percentiles.
 const WINDOW: usize = 1000;
+/// Histogram buckets for the whole run's percentiles: 5 µs wide up to 10 ms.
+const BUCKET: f64 = 5e-6;
+const BUCKETS: usize = 2000;
+
+/// A fixed histogram of times (the last bucket holds everything longer).
+struct Histogram {
+    counts: Vec<u64>,
+    total: u64,
+}
+
+impl Histogram {
+    fn new() -> Self {
+        Self {
+            counts: vec![0; BUCKETS],
+            total: 0,
+        }
+    }
+
+    fn add(&mut self, t: f64) {
+        let i = ((t / BUCKET) as usize).min(BUCKETS - 1);
+        self.counts[i] += 1;
+        self.total += 1;
+    }
+
+    /// The upper edge of the bucket holding quantile `q`.
+    fn quantile(&self, q: f64) -> f64 {
+        let want = (q * self.total as f64).ceil() as u64;
+        let mut seen = 0;
+        for (i, c) in self.counts.iter().enumerate() {
+            seen += c;
+            if seen >= want.max(1) {
+                return (i + 1) as f64 * BUCKET;
+            }
+        }
+        BUCKETS as f64 * BUCKET
+    }
+}
 
 /// The haptic loop: a thread that ticks a [`HapticRenderer`] at
 /// [`HapticSettings::rate_hz`] with a [`HapticDevice`].
@@ -121,6 +158,8 @@ struct Stats {
     window_start: Instant,
     window_ticks: u64,
     window_iterations: usize,
+    run_durations: Histogram,
+    run_jitter: Histogram,
     out: HapticStats,
 }
 
@@ -137,6 +176,8 @@ impl Stats {
             window_start: now,
             window_ticks: 0,
             window_iterations: 0,
+            run_durations: Histogram::new(),
+            run_jitter: Histogram::new(),
             out: HapticStats::default(),
         }
     }
@@ -155,6 +196,8 @@ impl Stats {
         self.out.tick_p50 = Self::percentile(s, d, 0.5);
         self.out.tick_p99 = Self::percentile(s, d, 0.99);
         self.out.jitter_p99 = Self::percentile(s, j, 0.99);
+        self.out.run_tick_p99 = self.run_durations.quantile(0.99);
+        self.out.run_jitter_p99 = self.run_jitter.quantile(0.99);
         let span = self.window_start.elapsed().as_secs_f64();
         if span > 0.0 {
             self.out.rate_hz = self.window_ticks as f64 / span;
@@ -208,6 +251,8 @@ fn run(
         } else {
             0.0
         };
+        s.run_durations.add(work);
+        s.run_jitter.add(s.jitter[s.next]);
         s.next = (s.next + 1) % WINDOW;
         s.filled = (s.filled + 1).min(WINDOW);
         s.window_ticks += 1;

@@ -141,6 +141,10 @@ pub struct HapticStats {
     pub tick_p50: f64,
     /// 99th percentile of the tick's work, seconds.
     pub tick_p99: f64,
+    /// 99th percentile of the tick's work since the start (to 5 µs), seconds.
+    pub run_tick_p99: f64,
+    /// 99th percentile of the interval jitter since the start (to 5 µs), seconds.
+    pub run_jitter_p99: f64,
     /// Longest tick since the start, seconds.
     pub tick_max: f64,
     /// 99th percentile of `|interval − period|` between tick starts, seconds.

@@ -114,7 +114,9 @@ impl Plugin for HapticsPlugin {
             (
                 follow_device.in_set(SoftTissueSystems::Assemble),
                 capture.in_set(SoftTissueSystems::Compliance),
-                publish.after(SoftTissueSystems::Refine).before(SoftTissueSystems::Sync),
+                publish
+                    .after(SoftTissueSystems::Refine)
+                    .before(SoftTissueSystems::Sync),
             ),
         )
         .add_systems(Last, stop_on_exit);
