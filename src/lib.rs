@@ -5,7 +5,7 @@
 //! The crate has two layers:
 //!
 //! - **The numerical core** — [`math`], [`error`] → [`mesh`] → [`material`] →
-//!   [`fem`] → [`solver`] → [`body`] → [`contact`] → [`scene`] (each module
+//!   [`fem`] → [`solver`] → [`body`] → [`contact`] → [`scene`] → [`haptics`] (each module
 //!   uses only those before it; [`scenes`] builds ready-made scenes on top,
 //!   and [`study`] measures what accuracy costs in time on any of them). It
 //!   has no Bevy types, works in `f64`, takes its scratch memory explicitly and
