@@ -780,7 +780,7 @@ fn a_haptic_device_drives_a_tool_and_stops_with_the_app() {
     let status = w.resource::<HapticsStatus>();
     assert!(status.running, "{:?}", status.error);
     let s = status.state;
-    assert!(s.stats.ticks > 10 && s.stats.problems > 10, "{:?}", s.stats);
+    assert!(s.stats.ticks > 10 && s.stats.problems >= 3, "{:?}", s.stats);
     assert!(s.contacts > 0, "the sphere touches the cube");
     assert!(
         s.force.z > 0.0,
