@@ -224,7 +224,6 @@ fn run(
     let mut stats = Stats::new();
     let mut last_tick: Option<Instant> = None;
     let mut last_force: Option<Vec3> = None;
-    let mut tick: u64 = 0;
     let (mut epoch, mut since_epoch) = (stats.start, 0u64);
     while !stop.load(Ordering::Acquire) {
         let t0 = Instant::now();
@@ -270,7 +269,7 @@ fn run(
             }
         }
         last_force = Some(out.force);
-        if tick % 100 == 99 {
+        if s.out.ticks.is_multiple_of(100) {
             s.refresh();
         }
         s.out.elapsed = time;
@@ -289,7 +288,6 @@ fn run(
         };
         outbox.post(|x| *x = state);
         last_tick = Some(t0);
-        tick += 1;
         since_epoch += 1;
 
         // Sleep to the next deadline, counted from an epoch so that a late

@@ -2,7 +2,7 @@
 
 use crate::contact::lcp::{LcpSettings, LcpSolver};
 use crate::contact::tool::Pose;
-use crate::error::{Result, check_positive, check_range};
+use crate::error::{Result, check_range};
 use crate::math::Vec3;
 
 /// The virtual coupling between the device and the simulated tool: a
@@ -94,8 +94,7 @@ impl HapticSettings {
             ("Coupling::angular_stiffness", c.angular_stiffness),
         ] {
             if k != f64::INFINITY {
-                check_positive(name, k)?;
-                check_range(name, k, 0.0, 1e12)?;
+                check_range(name, k, f64::MIN_POSITIVE, 1e12)?;
             }
         }
         check_range("Coupling::damping", c.damping, 0.0, 1e9)?;
