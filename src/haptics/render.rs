@@ -70,6 +70,9 @@ pub struct TickOutput {
     pub residual: f64,
     /// Whether the LCP met its tolerance within the budget.
     pub converged: bool,
+    /// The device's pose was not finite: the tick rendered no force and
+    /// kept the last proxy.
+    pub bad_pose: bool,
 }
 
 impl Default for TickOutput {
@@ -83,6 +86,7 @@ impl Default for TickOutput {
             iterations: 0,
             residual: 0.0,
             converged: true,
+            bad_pose: false,
         }
     }
 }
@@ -169,6 +173,19 @@ impl HapticRenderer {
     /// One tick with the device at `device`, `dt` seconds after the last.
     pub fn tick(&mut self, device: &Pose, dt: f64, limits: &DeviceLimits) -> TickOutput {
         let start = Instant::now();
+        let finite = device.translation.vector.iter().all(|c| c.is_finite())
+            && device.rotation.coords.iter().all(|c| c.is_finite());
+        if !finite {
+            let fallback = self
+                .problem
+                .as_ref()
+                .map_or(Pose::identity(), |p| p.problem.pose);
+            return TickOutput {
+                proxy: self.previous.map_or(fallback, |(_, proxy)| proxy),
+                bad_pose: true,
+                ..Default::default()
+            };
+        }
         let (prev_device, prev_proxy) = self.previous.unwrap_or((*device, *device));
         let Some(hp) = self.problem.as_deref() else {
             // No step yet: the tool follows the device and nothing is felt.

@@ -260,6 +260,7 @@ fn run(
         s.out.tick_max = s.out.tick_max.max(work);
         s.out.overruns += u64::from(work > period);
         s.out.unconverged += u64::from(!out.converged);
+        s.out.bad_poses += u64::from(out.bad_pose);
         if let Some(f) = last_force {
             let jump = (out.force - f).norm();
             if new_problem {

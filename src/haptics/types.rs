@@ -154,6 +154,8 @@ pub struct HapticStats {
     pub unconverged: u64,
     /// Ticks whose work took longer than the period.
     pub overruns: u64,
+    /// Ticks whose device pose was not finite (no force rendered).
+    pub bad_poses: u64,
     /// Problems received from the simulation.
     pub problems: u64,
     /// Largest change of the output force from one tick to the next, in ticks

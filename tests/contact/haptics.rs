@@ -269,6 +269,26 @@ fn the_loop_runs_beside_the_scene_and_stops_cleanly() {
     assert!(last_zero.load(Ordering::SeqCst), "the last output was zero");
 }
 
+/// A device pose with a NaN renders no force and keeps the proxy, never a NaN.
+#[test]
+fn a_non_finite_device_pose_renders_no_force() {
+    let scene = pressed(0.3, 2e-4);
+    let pose = *scene.tools[0].pose();
+    let mut r = renderer(&scene, Coupling::default());
+    let limits = DeviceLimits::default();
+    let good = r.tick(&pose, 1e-3, &limits);
+    assert!(!good.bad_pose && good.force.norm() > 0.0);
+    let mut bad = pose;
+    bad.translation.vector.x = f64::NAN;
+    let out = r.tick(&bad, 1e-3, &limits);
+    assert!(out.bad_pose);
+    assert_eq!(out.force, Vec3::zeros());
+    assert_eq!(out.torque, Vec3::zeros());
+    assert_eq!(out.proxy, good.proxy);
+    let again = r.tick(&pose, 1e-3, &limits);
+    assert!(!again.bad_pose && again.force.iter().all(|c| c.is_finite()));
+}
+
 /// Bad settings are refused by name.
 #[test]
 fn bad_haptic_settings_are_refused() {
