@@ -13,8 +13,10 @@
 //! `--compliance factorized|exact|diagonal|rest|dense`, `--reuse N` (steps a
 //! factor serves the compliance, `ContactSettings::factor_reuse`), `--passes N`
 //! (contact passes per step), `--no-predict` (detect at the free motion, not
-//! at the predicted positions, `ContactSettings::predict`) — accuracy against
-//! time; `--lcp pgs|block|nncg|subspace` (the contact solver, `LcpSolver`);
+//! at the predicted positions, `ContactSettings::predict`),
+//! `--no-rigid-modes` (`ContactSettings::rigid_modes` off),
+//! `--energy-tolerance X` (`ContactSettings::energy_tolerance`) — accuracy
+//! against time; `--lcp pgs|block|nncg|subspace` (the contact solver, `LcpSolver`);
 //! `--record-lcp DIR` writes each step's first-pass contact problem with at
 //! least `--record-min-contacts N` (default 91) contacts to `DIR`, for the
 //! `lcp` bench (`ContactProblem`).
@@ -54,6 +56,8 @@ struct Args {
     reuse: Option<u64>,
     passes: Option<usize>,
     predict: bool,
+    rigid_modes: bool,
+    energy_tolerance: Option<f64>,
     lcp: bevy_soft_tissue::contact::LcpSolver,
     record: Option<std::path::PathBuf>,
     record_min: usize,
@@ -70,6 +74,8 @@ fn parse() -> Result<Args, String> {
         reuse: None,
         passes: None,
         predict: true,
+        rigid_modes: true,
+        energy_tolerance: None,
         lcp: Default::default(),
         record: None,
         record_min: 91,
@@ -92,6 +98,15 @@ fn parse() -> Result<Args, String> {
             "--coarse" => a.coarse = true,
             "--push-only" => a.push_only = true,
             "--no-predict" => a.predict = false,
+            "--no-rigid-modes" => a.rigid_modes = false,
+            "--energy-tolerance" => {
+                let v = value()?;
+                a.energy_tolerance = Some(
+                    v.parse::<f64>()
+                        .map_err(|_| format!("--energy-tolerance needs a number, not `{v}`"))?,
+                );
+                i += 1;
+            }
             "--steps" => {
                 a.steps = number()? as usize;
                 i += 1;
@@ -222,6 +237,10 @@ fn headless(args: &Args, params: &CataractParams, config: SoftTissueConfig) -> E
                 "LCP sweeps (first pass): at most {}, mean {:.1} over the jam steps; solves at the sweep limit: {}",
                 s.lcp_sweeps.0, s.lcp_sweeps.1, s.lcp_capped
             );
+            println!(
+                "factors refreshed by the contact phase's consistency checks: {}",
+                s.consistency_refactors
+            );
             if let Some(r) = &recording {
                 println!(
                     "contact problems with at least {} contacts written to {}: {}",
@@ -298,6 +317,10 @@ fn main() -> ExitCode {
         config.contact.factor_reuse = r;
     }
     config.contact.predict = args.predict;
+    config.contact.rigid_modes = args.rigid_modes;
+    if let Some(t) = args.energy_tolerance {
+        config.contact.energy_tolerance = t;
+    }
     config.contact.lcp.solver = args.lcp;
     if let Some(p) = args.passes {
         config.contact.max_passes = p.max(1);

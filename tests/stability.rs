@@ -15,27 +15,38 @@
 //!   energy scale and `ALLOWANCE` = 1e-3 (the CG stops at a relative residual
 //!   of 1e-6; the allowance covers that, not a tuned margin). This holds for
 //!   the implicit step with its exact compliance. Every contact case runs
-//!   twice: with the default solver (`Async` preconditioner, `Factorized`
-//!   compliance from its factor) and with the exact one (`Exact` for both). In
-//!   steps without contact the bound is asserted for both; in steps with
-//!   contact only for the exact one;
+//!   three times: with the default solver (`Async` preconditioner,
+//!   `Factorized` compliance from its factor, rigid modes completed), with
+//!   the default solver and its energy guard on
+//!   (`ContactSettings::energy_tolerance` = [`GUARD`]), and with the exact
+//!   one (`Exact` for both). In steps without contact the bound is asserted
+//!   for all three; in steps with contact for the guarded and the exact one,
+//!   and for the default in the drops (a free lens landing: a rigid-mode
+//!   motion, which `ContactSettings::rigid_modes` answers exactly);
 //! - no surface vertex is deeper than the penetration tolerance inside a tool
 //!   or the other body, by a detection of its own at the step's end.
 //!
 //! With the exact compliance every contact step keeps the bound to round-off
 //! (measured: at most 6e-14 `E_ref`). With the default solver the
 //! correction `Δx = h² P⁻¹ Hᵀ λ` uses the preconditioner's factor `P`, made
-//! from an older matrix, not `A`. The contact phase refreshes the factor when
-//! the correction's stored energy strays from what the LCP accounted for
-//! (`ContactSettings::consistency_tolerance`), which removed the large gains
-//! (up to 2e2 `E_ref` before); what is left is recorded and printed, not
-//! asserted: in one run at most 9e-6 `E_ref` when the lens lands at
-//! h = 1/240, 6e-5 for the 0.5 m/s impact, and when the lens lands from a
-//! whole-step fall 2e-3 at h = 1/60 and 0.02 and 1.7e-2 at 0.04. It varies
-//! from run to run with the background factor's timing.
+//! from an older matrix and warped by the node rotations since, not `A`. The
+//! warp turned a free body's rigid modes into stiff deformation: a lens that
+//! landed, or rested on the plate against gravity, gained up to 1.7e-2
+//! `E_ref` a step at h = 0.04 (2e-3 at h = 1/60) even with the consistency
+//! refresh. The rigid-mode completion (`P⁻¹` replaced by
+//! `Q + (I − QA) P⁻¹ (I − AQ)` over the six rigid modes) brought the landings
+//! to at most 2e-4 `E_ref`, which is asserted. Where the tissue deforms
+//! under a held tool (the pressed lens, the squeezed blocks) the factor's
+//! deformation error remains: up to 6e-3 `E_ref` measured with the default,
+//! recorded and printed, not asserted; the guard, which refreshes the
+//! factor when a pass's misaccounted work exceeds [`GUARD`] of the body's
+//! energy, keeps the bound there, at the cost of many refreshes (in the
+//! cataract scene it halves the jam's steps/s, so it is off by default).
+//! The default's figures vary from run to run with the background factor's
+//! timing.
 //!
-//! Run it in release: `cargo test --release --test stability` (about 3 s;
-//! about 6 s in the test profile of `cargo test`).
+//! Run it in release: `cargo test --release --test stability` (about 6 s on
+//! two cores; longer in the test profile of `cargo test`).
 
 use bevy_soft_tissue::contact::{NO_TOOLS, PassKind};
 use bevy_soft_tissue::core_prelude::*;
@@ -61,25 +72,35 @@ struct Monitor {
     worst_rise: f64,
     /// The largest rise in a step with contacts, relative to `e_ref`.
     contact_rise: f64,
-    /// Whether the scene uses the exact compliance (energy asserted in contact too).
-    exact: bool,
+    /// Whether the energy bound is asserted in steps with contact too: the
+    /// exact compliance, the energy guard, or a case that asks for it
+    /// ([`Monitor::asserting_contact`]).
+    asserted: bool,
 }
 
 /// The solver variants each contact case runs with: the default (`Async`
-/// preconditioner, `Factorized` compliance from its factor) and the exact
-/// one (a fresh factorization every step for both).
+/// preconditioner, `Factorized` compliance from its factor, rigid modes
+/// completed), the default with the energy guard on
+/// (`ContactSettings::energy_tolerance` = [`GUARD`]) and the exact one (a
+/// fresh factorization every step for both).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum Variant {
     Default,
+    Guarded,
     Exact,
 }
 
-const VARIANTS: [Variant; 2] = [Variant::Default, Variant::Exact];
+const VARIANTS: [Variant; 3] = [Variant::Default, Variant::Guarded, Variant::Exact];
+
+/// The energy guard of [`Variant::Guarded`]: a correction may add at most
+/// this fraction of its body's mechanical energy per pass before the factor
+/// is refreshed.
+const GUARD: f64 = 1e-5;
 
 impl Variant {
     fn body(self, base: BodySettings) -> BodySettings {
         match self {
-            Variant::Default => base,
+            Variant::Default | Variant::Guarded => base,
             Variant::Exact => BodySettings {
                 preconditioner: PreconditionerKind::Exact,
                 ..base
@@ -89,8 +110,10 @@ impl Variant {
 
     fn contact(self) -> ContactSettings {
         let mut c = contact_settings();
-        if self == Variant::Exact {
-            c.compliance = ComplianceMode::Exact;
+        match self {
+            Variant::Default => {}
+            Variant::Guarded => c.energy_tolerance = GUARD,
+            Variant::Exact => c.compliance = ComplianceMode::Exact,
         }
         c
     }
@@ -120,8 +143,9 @@ impl Monitor {
                 .bodies
                 .iter()
                 .all(|b| b.settings().preconditioner == PreconditionerKind::Exact);
+        let guarded = settings.energy_tolerance <= GUARD;
         Self {
-            exact,
+            asserted: exact || guarded,
             name: name.into(),
             gravity,
             e_ref,
@@ -132,6 +156,14 @@ impl Monitor {
             worst_rise: f64::NEG_INFINITY,
             contact_rise: f64::NEG_INFINITY,
         }
+    }
+
+    /// Asserts the energy bound in steps with contact whatever the solver (the
+    /// cases whose bodies are free: the rigid-mode completion makes the
+    /// default solver keep it there).
+    fn asserting_contact(mut self) -> Self {
+        self.asserted = true;
+        self
     }
 
     /// Prints the largest energy rises, relative to `E_ref`.
@@ -149,7 +181,11 @@ impl Monitor {
             self.steps,
             show(self.worst_rise),
             show(self.contact_rise),
-            if self.exact { "asserted" } else { "recorded" }
+            if self.asserted {
+                "asserted"
+            } else {
+                "recorded"
+            }
         );
     }
 
@@ -195,7 +231,7 @@ impl Monitor {
         } else {
             self.worst_rise = self.worst_rise.max(rise / self.e_ref);
         }
-        if !contact || self.exact {
+        if !contact || self.asserted {
             assert!(
                 rise <= ALLOWANCE * self.e_ref,
                 "{name}, step {s}: energy rose by {rise:.3e} J beyond the contact forces' work \
@@ -290,12 +326,15 @@ fn stiff_core_drop(factor: f64, h: f64, v: Variant) {
     let e_ref = energy_scale(&lens);
     scene.add_body(lens);
     scene.add_tool(plate(-LENS_RADII[2] - 5e-4, 0.3));
+    // The lens is free: its landing is a rigid-mode motion, which the
+    // default solver answers exactly (`ContactSettings::rigid_modes`).
     let mut m = Monitor::new(
         format!("contrast {factor:e}, h {h:.4}, {v:?}"),
         &scene,
         gravity(),
         e_ref,
-    );
+    )
+    .asserting_contact();
     let steps = (0.6 / h) as usize;
     for _ in 0..steps {
         m.step(&mut scene, h);

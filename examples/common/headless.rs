@@ -65,6 +65,8 @@ pub struct HeadlessSummary {
     pub lcp_sweeps: (usize, f64),
     /// LCP solves that ran to their sweep limit unconverged.
     pub lcp_capped: u64,
+    /// Lagging factors refreshed by the contact phase (consistency checks).
+    pub consistency_refactors: u64,
     /// Contact problems written (see [`Recording`]).
     pub recorded: usize,
 }
@@ -300,6 +302,10 @@ pub fn run_headless_recording(
         jam: (jam.len(), (!jam.is_empty()).then(|| med(&mut jam))),
         max_passes,
         lcp_capped: app.world().resource::<SoftTissueDiagnostics>().lcp_capped,
+        consistency_refactors: app
+            .world()
+            .resource::<SoftTissueDiagnostics>()
+            .consistency_refactors,
         recorded,
     };
     Ok(summary)

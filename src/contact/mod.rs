@@ -110,6 +110,8 @@ pub struct ContactSolver {
     recorded: Option<ContactProblem>,
     dx: Vec<Vec<Vec3>>,
     stale: Vec<usize>,
+    /// Scratch of the correction: one body's nodal forces of a pass.
+    pass_forces: Vec<Vec3>,
     /// Per body index, per node: the contact force of the step, all passes.
     node_forces: Vec<Vec<Vec3>>,
     report: ContactReport,
@@ -408,6 +410,7 @@ impl ContactSolver {
             self.predict[bi].linearize_back(pass, entries, &mut self.jac.delta0);
             let compliance = &mut self.compliance[bi];
             compliance.reuse_steps = self.settings.factor_reuse;
+            compliance.rigid_modes = self.settings.rigid_modes;
             // The body's node-column hand-over, passed openly and put back.
             let mut prefetch = std::mem::take(bodies.body_mut(bi).column_prefetch_mut());
             let result = compliance.accumulate(
@@ -512,10 +515,13 @@ impl ContactSolver {
         pass: PassKind,
     ) -> Result<()> {
         // Refinement passes correct what the first left, with small forces:
-        // only the first pass is checked.
-        let tolerance = match pass {
-            PassKind::First => self.settings.consistency_tolerance,
-            PassKind::Refine => f64::INFINITY,
+        // only the first pass's energy ratio is checked; every pass's work.
+        let tolerance = correct::Tolerances {
+            ratio: match pass {
+                PassKind::First => self.settings.consistency_tolerance,
+                PassKind::Refine => f64::INFINITY,
+            },
+            energy: self.settings.energy_tolerance,
         };
         self.compute_corrections(bodies, tolerance)?;
         if !self.stale.is_empty() {
@@ -561,6 +567,7 @@ impl ContactSolver {
             modes: &self.modes,
             predictions: &mut self.predict,
             entries: &self.jac.entries,
+            forces: &mut self.pass_forces,
         }
     }
 
@@ -569,7 +576,7 @@ impl ContactSolver {
     fn compute_corrections<B: BodiesMut + ?Sized>(
         &mut self,
         bodies: &mut B,
-        tolerance: f64,
+        tolerance: correct::Tolerances,
     ) -> Result<()> {
         let t0 = Instant::now();
         let (mut dx, mut stale) = (
@@ -581,7 +588,8 @@ impl ContactSolver {
         let res = correct::compute(bodies, &mut per, h, &lambda, tolerance, &mut dx, &mut stale);
         (self.dx, self.stale, self.lambda) = (dx, stale, lambda);
         self.report.correct += t0.elapsed().as_secs_f64();
-        res
+        self.report.misaccounted_work += res?;
+        Ok(())
     }
 
     /// The rescue of [`Self::correct`]: the bodies in `self.stale` get a factor
@@ -602,7 +610,11 @@ impl ContactSolver {
         }
         self.build_compliance(bodies, pass, None)?;
         self.solve_lcp(&*bodies, pass);
-        self.compute_corrections(bodies, f64::INFINITY)
+        let unchecked = correct::Tolerances {
+            ratio: f64::INFINITY,
+            energy: f64::INFINITY,
+        };
+        self.compute_corrections(bodies, unchecked)
     }
 
     /// Runs the first pass (detection, compliance, LCP, correction), then the

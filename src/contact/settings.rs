@@ -55,13 +55,36 @@ pub struct ContactSettings {
     /// `W = h² H P⁻¹ Hᵀ`, accounted for `Δxᵀ P Δx / 2 = h² λᵀ H Δx / 2`. Their
     /// ratio is 1 when `P = A`; with an old factor warped by node rotations it
     /// is far from 1 where the rotations vary across the body (the warp then
-    /// twists the soft rigid-body modes of a free body into stiff deformation),
-    /// and the correction shoots the tissue off. When the ratio leaves
+    /// twists the soft rigid-body modes of a free body into stiff deformation,
+    /// which [`Self::rigid_modes`] now answers exactly), and the correction
+    /// shoots the tissue off. When the ratio leaves
     /// `[1 / (1 + tol), 1 + tol]` the body's matrix is factorized now and the
     /// pass's `W`, LCP and correction are redone with it (counted in
     /// [`super::ContactReport::consistency_refactors`]). Default 0.1;
-    /// `f64::INFINITY` never refreshes.
+    /// `f64::INFINITY` never refreshes. Checked in the first pass.
     pub consistency_tolerance: f64,
+    /// The energy a lagging factor's correction may add per pass, relative
+    /// to the body's mechanical (kinetic and elastic) energy. The correction
+    /// applies the force `A Δx / h²`, not the contact forces `Hᵀ λ` alone;
+    /// the difference does work along the step's displacement that no force
+    /// accounts for ([`super::ContactReport::misaccounted_work`]). When that
+    /// work exceeds `energy_tolerance` times the body's energy the factor is
+    /// refreshed as for `consistency_tolerance`, in every pass. Default
+    /// 1e-5; `f64::INFINITY` never refreshes.
+    pub energy_tolerance: f64,
+    /// Complete a lagging factor with the body's rigid modes (`Factorized`
+    /// compliance with a `Periodic`, `Async` or `AsyncLagged`
+    /// preconditioner). The warp turns an old factor's rigid-body modes into
+    /// stiff deformation where node rotations vary across the body, so
+    /// `P⁻¹` answers a force that moves the whole body (a lens landing, or
+    /// held up against gravity every step) wrongly, and the correction
+    /// stores energy the LCP did not account for. With this on, `W` and the
+    /// correction use the two-level inverse `Q + (I − QA) P⁻¹ (I − AQ)`,
+    /// `Q = Z (Zᵀ A Z)⁻¹ Zᵀ` over the six rigid modes `Z`: exact on them,
+    /// the factor for the deformation. It costs six solves with the factor
+    /// per body and step in contact, and a rank-12 update of `W`. On by
+    /// default.
+    pub rigid_modes: bool,
 }
 
 impl Default for ContactSettings {
@@ -77,6 +100,8 @@ impl Default for ContactSettings {
             factor_reuse: 0,
             predict: true,
             consistency_tolerance: 0.1,
+            energy_tolerance: f64::INFINITY,
+            rigid_modes: true,
         }
     }
 }
@@ -92,6 +117,13 @@ impl ContactSettings {
             return Err(SoftTissueError::InvalidParameter {
                 name: "consistency_tolerance",
                 value: self.consistency_tolerance,
+                reason: "must be positive (f64::INFINITY: never refresh)",
+            });
+        }
+        if self.energy_tolerance.is_nan() || self.energy_tolerance <= 0.0 {
+            return Err(SoftTissueError::InvalidParameter {
+                name: "energy_tolerance",
+                value: self.energy_tolerance,
                 reason: "must be positive (f64::INFINITY: never refresh)",
             });
         }

@@ -101,8 +101,16 @@ pub struct ContactReport {
     pub passes: usize,
     /// Bodies whose lagging factor was refreshed in this step because its
     /// correction strayed from the matrix
-    /// ([`super::ContactSettings::consistency_tolerance`]).
+    /// ([`super::ContactSettings::consistency_tolerance`],
+    /// [`super::ContactSettings::energy_tolerance`]).
     pub consistency_refactors: usize,
+    /// The work, in joules, that this step's corrections from lagging
+    /// factors did beyond the contact forces (the force `A Δx / h² − Hᵀ λ`
+    /// along the step's displacement), summed over passes and bodies: energy
+    /// the approximate compliance added (positive) or took (negative). 0 for
+    /// exact compliance; bounded per pass by
+    /// [`super::ContactSettings::energy_tolerance`].
+    pub misaccounted_work: f64,
     /// Deepest penetration found by the last detection, metres (0 if none).
     pub max_penetration: f64,
     /// Deepest penetration found by the first detection of the step, metres:

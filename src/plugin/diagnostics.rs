@@ -55,6 +55,10 @@ pub struct SoftTissueDiagnostics {
     pub lcp_capped: u64,
     /// Contact passes run.
     pub contact_passes: usize,
+    /// Counter: lagging factors refreshed by the contact phase because a
+    /// correction strayed from the matrix
+    /// ([`crate::contact::ContactReport::consistency_refactors`]).
+    pub consistency_refactors: u64,
     /// Counter: detection runs.
     pub detect_runs: u64,
     /// Counter: compliance builds.

@@ -91,6 +91,7 @@ fn sync_components(
         diag.lcp_first_iterations = report.lcp_first.iterations;
         diag.lcp_relative_residual = report.lcp_first.residual;
         diag.lcp_capped += report.lcp_capped as u64;
+        diag.consistency_refactors += report.consistency_refactors as u64;
         diag.detect_ms = report.detect * 1e3;
         diag.compliance_ms = report.compliance * 1e3;
         diag.lcp_ms = report.lcp_seconds * 1e3;

@@ -439,3 +439,56 @@ fn a_correction_that_strays_from_the_matrix_refreshes_the_factor() {
         );
     }
 }
+
+/// A lagging factor softer than the matrix (made at h = 1e-4 s, nearly the
+/// mass matrix alone, for an h = 0.01 s step) makes a correction that moves
+/// the tissue more than the contact forces account for: the report counts
+/// the energy it adds (`misaccounted_work` > 0). With the energy guard on,
+/// the contact phase refreshes the factor and the redone pass adds none;
+/// exact compliance never adds any. The guard is validated.
+#[test]
+fn the_energy_guard_refreshes_a_factor_whose_correction_adds_energy() {
+    let run = |guard: f64, mode: ComplianceMode| {
+        let mut body = based_lens(6, PreconditionerKind::Periodic { every: 1_000_000 });
+        body.step(1e-4).unwrap();
+        let mut scene = Scene::new(ContactSettings {
+            consistency_tolerance: f64::INFINITY,
+            energy_tolerance: guard,
+            compliance: mode,
+            ..Default::default()
+        })
+        .unwrap();
+        scene.add_body(body);
+        scene.add_tool(
+            RigidTool::new(
+                ToolShape::Sphere { radius: 3e-3 },
+                at(0.0, 0.0, 2.25e-3 + 3e-3 - 2e-4),
+            )
+            .unwrap(),
+        );
+        let r = scene.step(0.01).unwrap();
+        assert!(r.contacts > 0);
+        (r.consistency_refactors, r.misaccounted_work)
+    };
+    let (refreshed, added) = run(f64::INFINITY, ComplianceMode::Factorized);
+    assert_eq!(refreshed, 0);
+    assert!(added > 0.0, "the soft factor's correction adds {added:e} J");
+    let (refreshed, guarded) = run(1e-5, ComplianceMode::Factorized);
+    assert!(refreshed > 0, "the guard refreshes the factor");
+    assert!(
+        guarded.abs() < 1e-3 * added,
+        "after the refresh {guarded:e} J, before {added:e} J"
+    );
+    let (_, exact) = run(f64::INFINITY, ComplianceMode::Exact);
+    assert_eq!(exact, 0.0, "exact compliance is not a lagging factor");
+    for bad in [0.0, -1.0, f64::NAN] {
+        assert!(
+            ContactSettings {
+                energy_tolerance: bad,
+                ..Default::default()
+            }
+            .validate()
+            .is_err()
+        );
+    }
+}

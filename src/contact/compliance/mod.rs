@@ -28,7 +28,23 @@
 //! the step without penetration. Re-solving the correction with CG on the exact
 //! `A` would move the nodes slightly differently from what `W` assumed, and
 //! reopen penetrations of that size; the factor's error is the small error of the
-//! preconditioner itself.
+//! preconditioner itself. (Tried: such a CG "polish" of each correction
+//! threw two squeezed blocks through their plates within 20 steps, each
+//! pass's `W` predicting less than the body then moved.)
+//!
+//! ## Rigid modes of a lagging factor
+//! A factor of an older matrix, warped by the node rotations since, answers
+//! a force that moves a free body as a whole wrongly where the rotations
+//! vary across the body: the warp turns the rigid modes into deformation.
+//! For a lens landing on a plate or held up against gravity every step, the
+//! correction is mostly such a motion, and it stored up to a few per cent
+//! more energy than the LCP accounted for. With
+//! [`crate::contact::ContactSettings::rigid_modes`] (default on) `W` and the
+//! correction of a free body with a lagging factor use the two-level inverse
+//! `Q + (I − QA) P⁻¹ (I − AQ)`, `Q = Z (Zᵀ A Z)⁻¹ Zᵀ` over its six rigid
+//! modes `Z`: exact on them, the factor for the rest. Both stay consistent
+//! (the same operator), it costs six solves with the factor per body and step
+//! and a rank-12 update of `W` (`deflation.rs`).
 //!
 //! ## Other modes
 //! - `Exact`: the same with a fresh factorization of the current `A` (Q = I).
@@ -42,7 +58,8 @@
 //!
 //! ## Files
 //! One file per mode: `factorized.rs` (`Factorized` and `Exact`: the factor
-//! view, the snapshot for `factor_reuse`, cached node columns), `dense_rows.rs`,
+//! view, the snapshot for `factor_reuse`, cached node columns; `deflation.rs`
+//! the rigid-mode completion of a lagging one), `dense_rows.rs`,
 //! `diagonal.rs`, `rest.rs`. This file holds the types and the dispatch: every
 //! `match` on [`ComplianceMode`] is exhaustive, so a new mode is a compile
 //! error until each phase handles it.
@@ -53,12 +70,13 @@
 //! same view again, so `W` and `Δx` always use the same factor. The key, not a
 //! bit pattern, tells the column cache whose columns it holds.
 
+mod deflation;
 mod dense_rows;
 mod diagonal;
 mod factorized;
 mod rest;
 
-use crate::body::DeformableBody;
+use crate::body::{DeformableBody, NodeConstraint};
 use crate::error::Result;
 use crate::math::Vec3;
 use crate::solver::columns::{ColumnCache, ColumnPrefetch};
@@ -97,10 +115,35 @@ pub trait ComplianceBackend {
 pub struct BodyCompliance {
     /// Steps a factor snapshot may serve after a newer factor exists (0: always the newest).
     pub reuse_steps: u64,
+    /// Complete a lagging factor with the body's rigid modes
+    /// ([`crate::contact::ContactSettings::rigid_modes`]).
+    pub rigid_modes: bool,
     source: factorized::FactorSource,
+    deflation: deflation::Deflation,
     cache: ColumnCache,
     rest: rest::RestInverse,
     scratch: Scratch,
+}
+
+/// Whether `W` and the correction of this view get the rigid-mode
+/// completion: `Factorized` with a factor that lags the matrix, for a body
+/// with no constrained node (one held in place has no soft rigid modes).
+fn completes(
+    on: bool,
+    body: &DeformableBody,
+    mode: ComplianceMode,
+    view: &factorized::FactorView<'_>,
+) -> bool {
+    on && mode == ComplianceMode::Factorized
+        && body.settings().preconditioner.needs_rotations()
+        && body
+            .constraints()
+            .iter()
+            .all(|c| *c == NodeConstraint::Free)
+        && matches!(
+            view.key,
+            FactorKey::Preconditioner(_) | FactorKey::Snapshot(_)
+        )
 }
 
 /// Refreshes the step's factor and returns its view.
@@ -197,24 +240,38 @@ impl BodyCompliance {
                     view.key,
                     FactorKey::Preconditioner(_) | FactorKey::Snapshot(_)
                 );
-                if mode == ComplianceMode::Factorized
+                let on_backend = mode == ComplianceMode::Factorized
                     && shared
-                    && let Some(backend) = backend
-                    && backend.accumulate(body.id(), view.factor, view.key, h, entries, w, m)?
-                {
-                    return Ok(());
+                    && match backend {
+                        Some(backend) => backend.accumulate(
+                            body.id(),
+                            view.factor,
+                            view.key,
+                            h,
+                            entries,
+                            w,
+                            m,
+                        )?,
+                        None => false,
+                    };
+                if !on_backend {
+                    group(entries, &mut self.scratch.groups);
+                    factorized::accumulate(
+                        &view,
+                        &mut self.cache,
+                        prefetch,
+                        &mut self.scratch,
+                        h2,
+                        entries,
+                        w,
+                        m,
+                    );
                 }
-                group(entries, &mut self.scratch.groups);
-                factorized::accumulate(
-                    &view,
-                    &mut self.cache,
-                    prefetch,
-                    &mut self.scratch,
-                    h2,
-                    entries,
-                    w,
-                    m,
-                );
+                if completes(self.rigid_modes, body, mode, &view)
+                    && self.deflation.prepare(body, &view)
+                {
+                    self.deflation.add_to_w(entries, h2, w, m);
+                }
                 Ok(())
             }
         }
@@ -253,6 +310,11 @@ impl BodyCompliance {
                 // Only `Factorized` builds leave this step's columns in the cache.
                 let cache = (mode == ComplianceMode::Factorized).then_some(&self.cache);
                 factorized::correction(&view, cache, h2, entries, lambda, &mut self.scratch, dx);
+                if completes(self.rigid_modes, body, mode, &view)
+                    && self.deflation.prepare(body, &view)
+                {
+                    self.deflation.add_to_correction(entries, lambda, h2, dx);
+                }
                 Ok(())
             }
         }

@@ -1,0 +1,227 @@
+//! The rigid-mode completion of a lagging factor (two-level compliance; see
+//! [`crate::contact::ContactSettings::rigid_modes`]).
+//!
+//! With `Z` the body's six rigid modes (translations, and rotations about its
+//! centre of mass, zero at constrained nodes), `P` the lagging factor (warped)
+//! and `A` the step's matrix, the compliance and the correction use
+//!
+//! ```text
+//! P_D⁻¹ = Q + (I − Q A) P⁻¹ (I − A Q),   Q = Z (Zᵀ A Z)⁻¹ Zᵀ
+//! ```
+//!
+//! instead of `P⁻¹` (the balancing two-level preconditioner of domain
+//! decomposition). It is symmetric positive definite, exact on the rigid
+//! modes (`P_D⁻¹ A Z = Z`) and leaves the rest to `P`: the part of a force
+//! that moves the body as a whole is answered by `A` itself, only the
+//! deformation by the factor. With `Y = P⁻¹ A Z`, `G = (Zᵀ A Z)⁻¹`,
+//! `S = Zᵀ A Y` and `B = G + G S G`:
+//!
+//! ```text
+//! P_D⁻¹ = P⁻¹ + Z B Zᵀ − Y G Zᵀ − Z G Yᵀ
+//! ```
+//!
+//! so with `U = H Z` and `V = H Y` (six columns each) `W` gains the rank-12
+//! term `h² (U B Uᵀ − V G Uᵀ − U G Vᵀ)` and the correction
+//! `h² (Z (B a − G b) − Y G a)` with `a = Uᵀ λ`, `b = Vᵀ λ`. `Y` costs six
+//! solves with the factor per step and body in contact; the rest is
+//! `O(n + m²)` with a factor six.
+
+use nalgebra::{Matrix6, Vector6};
+
+use super::entries::JacEntry;
+use crate::body::{DeformableBody, NodeConstraint};
+use crate::math::Vec3;
+use crate::solver::columns::FactorKey;
+
+use super::factorized::FactorView;
+
+/// One body's rigid-mode completion, kept between passes of a step.
+#[derive(Debug, Default)]
+pub(super) struct Deflation {
+    /// The factor and step that `y`, `g`, `b` belong to; `None`: nothing valid.
+    key: Option<(FactorKey, u64)>,
+    /// Whether `Zᵀ A Z` was positive definite (no completion otherwise).
+    active: bool,
+    z: [Vec<Vec3>; 6],
+    y: [Vec<Vec3>; 6],
+    g: Matrix6<f64>,
+    b: Matrix6<f64>,
+    tmp: Vec<Vec3>,
+    tmp2: Vec<Vec3>,
+    /// Per pass: the rows this body touches, with their `U` and `V` rows.
+    rows: Vec<u32>,
+    u: Vec<Vector6<f64>>,
+    v: Vec<Vector6<f64>>,
+    slot: Vec<u32>,
+}
+
+impl Deflation {
+    /// Makes the completion of `view`'s factor for this step's matrix, unless
+    /// it is already made. Returns whether it is active.
+    pub(super) fn prepare(&mut self, body: &DeformableBody, view: &FactorView<'_>) -> bool {
+        let key = (view.key, body.step_index());
+        if self.key == Some(key) {
+            return self.active;
+        }
+        self.key = Some(key);
+        self.active = false;
+        let n = body.num_nodes();
+        let x = body.positions();
+        let mass = body.mass();
+        let free = |i: usize| body.constraints()[i] == NodeConstraint::Free;
+        // Centre of mass and size of the free nodes.
+        let (mut c, mut mt) = (Vec3::zeros(), 0.0);
+        for i in (0..n).filter(|&i| free(i)) {
+            c += x[i] * mass[i];
+            mt += mass[i];
+        }
+        if mt <= 0.0 {
+            return false;
+        }
+        c /= mt;
+        let r2: f64 = (0..n)
+            .filter(|&i| free(i))
+            .map(|i| mass[i] * (x[i] - c).norm_squared())
+            .sum::<f64>()
+            / mt;
+        let len = r2.sqrt();
+        if !(len > 0.0 && len.is_finite()) {
+            return false;
+        }
+        for (k, z) in self.z.iter_mut().enumerate() {
+            z.clear();
+            z.resize(n, Vec3::zeros());
+            for i in (0..n).filter(|&i| free(i)) {
+                let mut e = Vec3::zeros();
+                e[k % 3] = 1.0;
+                z[i] = if k < 3 { e } else { e.cross(&(x[i] - c)) / len };
+            }
+        }
+        // A Z into y, Zᵀ A Z; then y = P⁻¹ A Z and S = (A Z)ᵀ Y.
+        let a = body.system_matrix();
+        let f = view.factor;
+        let mut zaz = Matrix6::zeros();
+        let mut s = Matrix6::zeros();
+        self.tmp.resize(n, Vec3::zeros());
+        self.tmp2.resize(n, Vec3::zeros());
+        for k in 0..6 {
+            let y = &mut self.y[k];
+            y.resize(n, Vec3::zeros());
+            a.mul_vec(&self.z[k], y);
+            for l in 0..6 {
+                zaz[(l, k)] = dot(&self.z[l], y);
+            }
+            // y = P⁻¹ (A z) with P⁻¹ = Q (L D Lᵀ)⁻¹ Qᵀ, as the compliance
+            // applies it (`y` is the solve's scratch once read).
+            for i in 0..n {
+                self.tmp2[i] = match view.warp {
+                    Some(q) => q[i].transpose() * y[i],
+                    None => y[i],
+                };
+            }
+            f.solve(&self.tmp2, &mut self.tmp, y);
+            for i in 0..n {
+                y[i] = match view.warp {
+                    Some(q) => q[i] * self.tmp[i],
+                    None => self.tmp[i],
+                };
+            }
+        }
+        // S = Zᵀ A Y, by one more product per column.
+        for k in 0..6 {
+            a.mul_vec(&self.y[k], &mut self.tmp);
+            for l in 0..6 {
+                s[(l, k)] = dot(&self.z[l], &self.tmp);
+            }
+        }
+        let zaz = (zaz + zaz.transpose()) * 0.5;
+        let s = (s + s.transpose()) * 0.5;
+        let Some(chol) = zaz.cholesky() else {
+            return false;
+        };
+        let g = chol.inverse();
+        if !g.iter().all(|v| v.is_finite()) || !s.iter().all(|v| v.is_finite()) {
+            return false;
+        }
+        self.g = g;
+        self.b = g + g * s * g;
+        self.active = true;
+        true
+    }
+
+    /// `U = H Z` and `V = H Y` of the rows `entries` touch (`m` rows in all).
+    fn rows_of(&mut self, entries: &[JacEntry], m: usize) {
+        self.slot.clear();
+        self.slot.resize(m, u32::MAX);
+        self.rows.clear();
+        self.u.clear();
+        self.v.clear();
+        for e in entries {
+            let r = e.row as usize;
+            if self.slot[r] == u32::MAX {
+                self.slot[r] = self.rows.len() as u32;
+                self.rows.push(e.row);
+                self.u.push(Vector6::zeros());
+                self.v.push(Vector6::zeros());
+            }
+            let s = self.slot[r] as usize;
+            let k = e.node as usize;
+            for c in 0..6 {
+                self.u[s][c] += e.h.dot(&self.z[c][k]);
+                self.v[s][c] += e.h.dot(&self.y[c][k]);
+            }
+        }
+    }
+
+    /// `W += h² (U B Uᵀ − V G Uᵀ − U G Vᵀ)` over the rows of `entries`.
+    pub(super) fn add_to_w(&mut self, entries: &[JacEntry], h2: f64, w: &mut [f64], m: usize) {
+        if !self.active {
+            return;
+        }
+        self.rows_of(entries, m);
+        for i in 0..self.rows.len() {
+            // Row r: (B u_r − G v_r)·u_s − (G u_r)·v_s.
+            let a = (self.b * self.u[i] - self.g * self.v[i]) * h2;
+            let b = self.g * self.u[i] * h2;
+            let wr = &mut w[self.rows[i] as usize * m..][..m];
+            for j in 0..self.rows.len() {
+                wr[self.rows[j] as usize] += a.dot(&self.u[j]) - b.dot(&self.v[j]);
+            }
+        }
+    }
+
+    /// `dx += h² (Z (B a − G b) − Y G a)`, `a = Uᵀ λ`, `b = Vᵀ λ`.
+    pub(super) fn add_to_correction(
+        &self,
+        entries: &[JacEntry],
+        lambda: &[f64],
+        h2: f64,
+        dx: &mut [Vec3],
+    ) {
+        if !self.active {
+            return;
+        }
+        let (mut a, mut b) = (Vector6::zeros(), Vector6::zeros());
+        for e in entries {
+            let k = e.node as usize;
+            let l = lambda[e.row as usize];
+            for c in 0..6 {
+                a[c] += l * e.h.dot(&self.z[c][k]);
+                b[c] += l * e.h.dot(&self.y[c][k]);
+            }
+        }
+        let cz = (self.b * a - self.g * b) * h2;
+        let cy = self.g * a * h2;
+        for (i, d) in dx.iter_mut().enumerate() {
+            let mut s = Vec3::zeros();
+            for c in 0..6 {
+                s += self.z[c][i] * cz[c] - self.y[c][i] * cy[c];
+            }
+            *d += s;
+        }
+    }
+}
+
+fn dot(a: &[Vec3], b: &[Vec3]) -> f64 {
+    a.iter().zip(b).map(|(x, y)| x.dot(y)).sum()
+}
