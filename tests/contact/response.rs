@@ -387,6 +387,28 @@ fn no_friction_rows_when_mu_is_zero_and_no_work_without_contact() {
     assert_eq!((r.contacts, r.pairs_tested, r.rows, r.solves), (0, 0, 0, 0));
 }
 
+/// A based lens whose never-refreshed factor was made by one step of
+/// `factor_h`, under a sphere 0.2 mm deep, in a scene with `settings`;
+/// returns the scene after one 0.01 s step, its report, and the body's
+/// preconditioner rescues before that step.
+fn lagging_lens_pressed(factor_h: f64, settings: ContactSettings) -> (Scene, ContactReport, u64) {
+    let mut body = based_lens(6, PreconditionerKind::Periodic { every: 1_000_000 });
+    body.step(factor_h).unwrap();
+    let rescues = body.report().preconditioner.rescues;
+    let mut scene = Scene::new(settings).unwrap();
+    scene.add_body(body);
+    scene.add_tool(
+        RigidTool::new(
+            ToolShape::Sphere { radius: 3e-3 },
+            at(0.0, 0.0, 2.25e-3 + 3e-3 - 2e-4),
+        )
+        .unwrap(),
+    );
+    let r = scene.step(0.01).unwrap();
+    assert!(r.contacts > 0);
+    (scene, r, rescues)
+}
+
 /// A lagging factor that does not fit the matrix (here made at h = 1 s, ten
 /// thousand times stiffer than the matrix of an h = 0.01 s step) makes a
 /// correction that strays from it: the contact phase factorizes the current
@@ -395,24 +417,11 @@ fn no_friction_rows_when_mu_is_zero_and_no_work_without_contact() {
 #[test]
 fn a_correction_that_strays_from_the_matrix_refreshes_the_factor() {
     for (tolerance, refresh) in [(0.1, true), (f64::INFINITY, false)] {
-        let mut body = based_lens(6, PreconditionerKind::Periodic { every: 1_000_000 });
-        body.step(1.0).unwrap();
-        let rescues = body.report().preconditioner.rescues;
-        let mut scene = Scene::new(ContactSettings {
+        let settings = ContactSettings {
             consistency_tolerance: tolerance,
             ..Default::default()
-        })
-        .unwrap();
-        scene.add_body(body);
-        scene.add_tool(
-            RigidTool::new(
-                ToolShape::Sphere { radius: 3e-3 },
-                at(0.0, 0.0, 2.25e-3 + 3e-3 - 2e-4),
-            )
-            .unwrap(),
-        );
-        let r = scene.step(0.01).unwrap();
-        assert!(r.contacts > 0);
+        };
+        let (scene, r, rescues) = lagging_lens_pressed(1.0, settings);
         let p = scene.bodies[0].report().preconditioner;
         assert_eq!(
             r.consistency_refactors > 0,
@@ -449,25 +458,13 @@ fn a_correction_that_strays_from_the_matrix_refreshes_the_factor() {
 #[test]
 fn the_energy_guard_refreshes_a_factor_whose_correction_adds_energy() {
     let run = |guard: f64, mode: ComplianceMode| {
-        let mut body = based_lens(6, PreconditionerKind::Periodic { every: 1_000_000 });
-        body.step(1e-4).unwrap();
-        let mut scene = Scene::new(ContactSettings {
+        let settings = ContactSettings {
             consistency_tolerance: f64::INFINITY,
             energy_tolerance: guard,
             compliance: mode,
             ..Default::default()
-        })
-        .unwrap();
-        scene.add_body(body);
-        scene.add_tool(
-            RigidTool::new(
-                ToolShape::Sphere { radius: 3e-3 },
-                at(0.0, 0.0, 2.25e-3 + 3e-3 - 2e-4),
-            )
-            .unwrap(),
-        );
-        let r = scene.step(0.01).unwrap();
-        assert!(r.contacts > 0);
+        };
+        let (_, r, _) = lagging_lens_pressed(1e-4, settings);
         (r.consistency_refactors, r.misaccounted_work)
     };
     let (refreshed, added) = run(f64::INFINITY, ComplianceMode::Factorized);
