@@ -71,8 +71,9 @@ pub(super) fn compute<B: BodiesMut + ?Sized>(
             // The body's mechanical energy only when the work could exceed
             // its share (the elastic energy costs a pass over the elements).
             let e = tolerance.energy;
-            let gains = c.misaccounted > e * body.kinetic_energy()
-                && c.misaccounted > e * (body.kinetic_energy() + body.elastic_energy());
+            let kinetic = body.kinetic_energy();
+            let gains = c.misaccounted > e * kinetic
+                && c.misaccounted > e * (kinetic + body.elastic_energy());
             if strays || gains {
                 stale.push(bi);
             } else {

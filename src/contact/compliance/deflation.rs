@@ -29,7 +29,7 @@
 use nalgebra::{Matrix6, Vector6};
 
 use super::entries::JacEntry;
-use crate::body::{DeformableBody, NodeConstraint};
+use crate::body::DeformableBody;
 use crate::math::Vec3;
 use crate::solver::columns::FactorKey;
 
@@ -43,6 +43,8 @@ pub(super) struct Deflation {
     /// Whether `Zᵀ A Z` was positive definite (no completion otherwise).
     active: bool,
     z: [Vec<Vec3>; 6],
+    /// `A Z`.
+    az: [Vec<Vec3>; 6],
     y: [Vec<Vec3>; 6],
     g: Matrix6<f64>,
     b: Matrix6<f64>,
@@ -65,23 +67,19 @@ impl Deflation {
         }
         self.key = Some(key);
         self.active = false;
+        // Only bodies with every node free come here (see `completes`).
         let n = body.num_nodes();
         let x = body.positions();
         let mass = body.mass();
-        let free = |i: usize| body.constraints()[i] == NodeConstraint::Free;
-        // Centre of mass and size of the free nodes.
-        let (mut c, mut mt) = (Vec3::zeros(), 0.0);
-        for i in (0..n).filter(|&i| free(i)) {
-            c += x[i] * mass[i];
-            mt += mass[i];
-        }
+        let mt: f64 = mass.iter().sum();
         if mt <= 0.0 {
             return false;
         }
-        c /= mt;
-        let r2: f64 = (0..n)
-            .filter(|&i| free(i))
-            .map(|i| mass[i] * (x[i] - c).norm_squared())
+        let c = x.iter().zip(mass).map(|(x, m)| x * *m).sum::<Vec3>() / mt;
+        let r2 = x
+            .iter()
+            .zip(mass)
+            .map(|(x, m)| m * (x - c).norm_squared())
             .sum::<f64>()
             / mt;
         let len = r2.sqrt();
@@ -90,14 +88,14 @@ impl Deflation {
         }
         for (k, z) in self.z.iter_mut().enumerate() {
             z.clear();
-            z.resize(n, Vec3::zeros());
-            for i in (0..n).filter(|&i| free(i)) {
-                let mut e = Vec3::zeros();
-                e[k % 3] = 1.0;
-                z[i] = if k < 3 { e } else { e.cross(&(x[i] - c)) / len };
-            }
+            let mut e = Vec3::zeros();
+            e[k % 3] = 1.0;
+            z.extend(
+                x.iter()
+                    .map(|xi| if k < 3 { e } else { e.cross(&(xi - c)) / len }),
+            );
         }
-        // A Z into y, Zᵀ A Z; then y = P⁻¹ A Z and S = (A Z)ᵀ Y.
+        // A Z, Zᵀ A Z; y = P⁻¹ A Z; S = (A Z)ᵀ Y.
         let a = body.system_matrix();
         let f = view.factor;
         let mut zaz = Matrix6::zeros();
@@ -105,20 +103,22 @@ impl Deflation {
         self.tmp.resize(n, Vec3::zeros());
         self.tmp2.resize(n, Vec3::zeros());
         for k in 0..6 {
-            let y = &mut self.y[k];
-            y.resize(n, Vec3::zeros());
-            a.mul_vec(&self.z[k], y);
+            let az = &mut self.az[k];
+            az.resize(n, Vec3::zeros());
+            a.mul_vec(&self.z[k], az);
             for l in 0..6 {
-                zaz[(l, k)] = dot(&self.z[l], y);
+                zaz[(l, k)] = dot(&self.z[l], az);
             }
             // y = P⁻¹ (A z) with P⁻¹ = Q (L D Lᵀ)⁻¹ Qᵀ, as the compliance
-            // applies it (`y` is the solve's scratch once read).
+            // applies it (`y` is the solve's scratch).
             for i in 0..n {
                 self.tmp2[i] = match view.warp {
-                    Some(q) => q[i].transpose() * y[i],
-                    None => y[i],
+                    Some(q) => q[i].transpose() * az[i],
+                    None => az[i],
                 };
             }
+            let y = &mut self.y[k];
+            y.resize(n, Vec3::zeros());
             f.solve(&self.tmp2, &mut self.tmp, y);
             for i in 0..n {
                 y[i] = match view.warp {
@@ -127,11 +127,9 @@ impl Deflation {
                 };
             }
         }
-        // S = Zᵀ A Y, by one more product per column.
         for k in 0..6 {
-            a.mul_vec(&self.y[k], &mut self.tmp);
             for l in 0..6 {
-                s[(l, k)] = dot(&self.z[l], &self.tmp);
+                s[(l, k)] = dot(&self.az[l], &self.y[k]);
             }
         }
         let zaz = (zaz + zaz.transpose()) * 0.5;
