@@ -33,6 +33,15 @@
 //! Keys: `Space` toggles the scripted path; `W/S` move the vectis toward/away
 //! from the incision, `A/D` sideways, `Q/E` across the slit; drag with the right
 //! mouse button to orbit the camera, wheel to zoom.
+//!
+//! `--haptics` (window only): a simulated haptic device drives the vectis at
+//! 1 kHz through `HapticsPlugin`. The device's hand follows the scripted
+//! path on the scene's clock (`Space` pauses it) through a mass–spring arm,
+//! and `W/S/A/D/Q/E` push the hand off the path; the vectis the tissue sees
+//! is the coupled pose. An arrow at the blade shows the force the device
+//! renders (1 mm per 2 mN), and the panel charts the haptic rate and force
+//! with the tick time, jitter and LCP sweeps. The headless benchmark of the
+//! same loop is `cargo run --release --example haptics`.
 
 use std::process::ExitCode;
 
@@ -61,6 +70,7 @@ struct Args {
     lcp: bevy_soft_tissue::contact::LcpSolver,
     record: Option<std::path::PathBuf>,
     record_min: usize,
+    haptics: bool,
 }
 
 fn parse() -> Result<Args, String> {
@@ -79,6 +89,7 @@ fn parse() -> Result<Args, String> {
         lcp: Default::default(),
         record: None,
         record_min: 91,
+        haptics: false,
     };
     let args: Vec<String> = std::env::args().skip(1).collect();
     let mut i = 0;
@@ -99,6 +110,7 @@ fn parse() -> Result<Args, String> {
             "--push-only" => a.push_only = true,
             "--no-predict" => a.predict = false,
             "--no-rigid-modes" => a.rigid_modes = false,
+            "--haptics" => a.haptics = true,
             "--energy-tolerance" => {
                 let v = value()?;
                 a.energy_tolerance = Some(
@@ -338,16 +350,25 @@ fn main() -> ExitCode {
                 }
             );
         }
+        if args.haptics {
+            println!(
+                "--haptics needs the window; running without haptics \
+                 (the headless haptic benchmark: cargo run --release --example haptics)"
+            );
+        }
         return headless(&args, &params, config);
     }
     #[cfg(feature = "viewer")]
-    viewer::run(params, config, args.preconditioner);
+    viewer::run(params, config, args.preconditioner, args.haptics);
     ExitCode::SUCCESS
 }
 
 #[cfg(feature = "viewer")]
 mod viewer {
     use std::collections::VecDeque;
+    use std::sync::Arc;
+    use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+    use std::time::Instant;
 
     use bevy::input::mouse::{AccumulatedMouseMotion, AccumulatedMouseScroll};
     use bevy::prelude::*;
@@ -355,11 +376,13 @@ mod viewer {
     use bevy_soft_tissue::SoftTissuePlugins;
     use bevy_soft_tissue::body::BodySettings;
     use bevy_soft_tissue::contact::ComplianceMode;
+    use bevy_soft_tissue::haptics::{HapticSettings, SimulatedDevice, SimulatedHand};
     use bevy_soft_tissue::plugin::render::BodyColoring;
     use bevy_soft_tissue::plugin::{
-        PreconditionerOverride, SoftBody, SoftTissueConfig, SoftTissueDiagnostics,
+        HapticTool, HapticsPlugin, HapticsStatus, PreconditionerOverride, SoftBody,
+        SoftTissueConfig, SoftTissueDiagnostics,
     };
-    use bevy_soft_tissue::scenes::cataract::{CataractParams, incision_frame};
+    use bevy_soft_tissue::scenes::cataract::{CataractParams, ExtractionPath, incision_frame};
     use bevy_soft_tissue::scenes::{CataractScenePlugin, Eye, Lens, Vectis};
     use bevy_soft_tissue::solver::PreconditionerKind;
 
@@ -370,8 +393,44 @@ mod viewer {
         compliance: usize,
         gravity: bool,
         history: VecDeque<[f32; 10]>,
+        /// Haptic rate (Hz) and rendered force (mN), one row per frame.
+        haptic_history: VecDeque<[f32; 2]>,
         frame_time: f32,
     }
+
+    /// What the simulated hand follows, shared with the haptic thread: the
+    /// scripted path on the scene's clock, plus an offset the keys move.
+    struct HandShared {
+        /// Scene time of the script, seconds (`f64` bits).
+        clock: AtomicU64,
+        /// Wall time of the last fixed step since `start`, seconds (`f64` bits).
+        wall: AtomicU64,
+        /// The hand's offset from the path, metres (`f64` bits).
+        offset: [AtomicU64; 3],
+        paused: AtomicBool,
+        start: Instant,
+    }
+
+    #[derive(Resource, Clone)]
+    struct Hand(Arc<HandShared>);
+
+    fn load(a: &AtomicU64) -> f64 {
+        f64::from_bits(a.load(Ordering::Acquire))
+    }
+
+    fn store(a: &AtomicU64, v: f64) {
+        a.store(v.to_bits(), Ordering::Release);
+    }
+
+    /// The arrow of the rendered force: a shaft and a head.
+    #[derive(Component)]
+    enum ForceArrow {
+        Shaft,
+        Head,
+    }
+
+    /// Arrow length per newton of rendered force (1 mm per 2 mN).
+    const ARROW_M_PER_N: f32 = 0.5;
 
     #[derive(Component)]
     struct OrbitCamera {
@@ -385,43 +444,173 @@ mod viewer {
         params: CataractParams,
         config: SoftTissueConfig,
         preconditioner: PreconditionerKind,
+        haptics: bool,
     ) {
         let (er, _) = incision_frame(&params);
         let target = Vec3::new(er.x as f32, er.y as f32, er.z as f32) * 0.007;
-        App::new()
-            .add_plugins(DefaultPlugins.set(WindowPlugin {
-                primary_window: Some(Window {
-                    title: "bevy_soft_tissue — MSICS nucleus extraction".into(),
-                    resolution: (1280u32, 800u32).into(),
-                    ..Default::default()
-                }),
+        let path = ExtractionPath::new(&params);
+        let mut app = App::new();
+        app.add_plugins(DefaultPlugins.set(WindowPlugin {
+            primary_window: Some(Window {
+                title: "bevy_soft_tissue — MSICS nucleus extraction".into(),
+                resolution: (1280u32, 800u32).into(),
                 ..Default::default()
-            }))
-            .add_plugins(EguiPlugin::default())
-            .add_plugins(SoftTissuePlugins::default().with_config(config))
-            .add_plugins(CataractScenePlugin {
-                params,
-                body: BodySettings {
-                    preconditioner,
-                    ..Default::default()
-                },
-            })
-            .insert_resource(ClearColor(Color::srgb(0.06, 0.07, 0.09)))
-            .insert_resource(Ui {
-                preconditioner: 3,
-                period: 4,
-                compliance: 0,
-                gravity: false,
-                history: VecDeque::new(),
-                frame_time: 0.0,
-            })
-            .add_systems(Startup, move |mut commands: Commands| {
-                setup(&mut commands, target)
-            })
-            .add_systems(PostStartup, style_bodies)
-            .add_systems(Update, (orbit_camera, keyboard_tool, record))
-            .add_systems(EguiPrimaryContextPass, panel)
-            .run();
+            }),
+            ..Default::default()
+        }))
+        .add_plugins(EguiPlugin::default())
+        .add_plugins(SoftTissuePlugins::default().with_config(config))
+        .add_plugins(CataractScenePlugin {
+            params,
+            body: BodySettings {
+                preconditioner,
+                ..Default::default()
+            },
+        })
+        .insert_resource(ClearColor(Color::srgb(0.06, 0.07, 0.09)))
+        .insert_resource(Ui {
+            preconditioner: 3,
+            period: 4,
+            compliance: 0,
+            gravity: false,
+            history: VecDeque::new(),
+            haptic_history: VecDeque::new(),
+            frame_time: 0.0,
+        })
+        .add_systems(Startup, move |mut commands: Commands| {
+            setup(&mut commands, target)
+        })
+        .add_systems(PostStartup, style_bodies)
+        .add_systems(Update, (orbit_camera, keyboard_tool, record))
+        .add_systems(EguiPrimaryContextPass, panel);
+        if haptics {
+            add_haptics(&mut app, path);
+        }
+        app.run();
+    }
+
+    /// A simulated device drives the vectis through `HapticsPlugin`: its hand
+    /// follows the scripted path on the scene's clock (interpolated by the
+    /// wall clock within a step), off by the keys' offset.
+    fn add_haptics(app: &mut App, path: ExtractionPath) {
+        let shared = Arc::new(HandShared {
+            clock: AtomicU64::new(0f64.to_bits()),
+            wall: AtomicU64::new(0f64.to_bits()),
+            offset: Default::default(),
+            paused: AtomicBool::new(false),
+            start: Instant::now(),
+        });
+        let h = shared.clone();
+        let step = app
+            .world()
+            .get_resource::<SoftTissueConfig>()
+            .map_or(1.0 / 60.0, |c| c.timestep);
+        let script = move |_: f64| {
+            let since = if h.paused.load(Ordering::Acquire) {
+                0.0
+            } else {
+                (h.start.elapsed().as_secs_f64() - load(&h.wall)).clamp(0.0, step)
+            };
+            let mut pose = path.pose(load(&h.clock) + since);
+            for (k, o) in h.offset.iter().enumerate() {
+                pose.translation.vector[k] += load(o);
+            }
+            pose
+        };
+        let hand = SimulatedHand {
+            mass: 0.2,
+            stiffness: 2000.0,
+            damping: 0.7 * 2.0 * (2000.0f64 * 0.2).sqrt(),
+        };
+        let device = match SimulatedDevice::scripted(script).with_hand(hand) {
+            Ok(d) => d,
+            Err(e) => {
+                error!("simulated device: {e}");
+                return;
+            }
+        };
+        app.add_plugins(HapticsPlugin::new(device, HapticSettings::default()))
+            .insert_resource(Hand(shared))
+            .add_systems(Startup, spawn_arrow)
+            .add_systems(PostStartup, hand_drives_vectis)
+            .add_systems(FixedUpdate, advance_hand)
+            .add_systems(Update, force_arrow);
+    }
+
+    /// The vectis follows the device (its script no longer drives it).
+    fn hand_drives_vectis(mut commands: Commands, mut q: Query<(Entity, &mut Vectis)>) {
+        for (e, mut v) in &mut q {
+            v.scripted = false;
+            commands.entity(e).insert(HapticTool);
+        }
+    }
+
+    /// The hand's script advances with the scene's fixed steps.
+    fn advance_hand(hand: Res<Hand>, config: Res<SoftTissueConfig>) {
+        let h = &hand.0;
+        if !h.paused.load(Ordering::Acquire) {
+            store(&h.clock, load(&h.clock) + config.timestep);
+        }
+        store(&h.wall, h.start.elapsed().as_secs_f64());
+    }
+
+    fn spawn_arrow(
+        mut commands: Commands,
+        mut meshes: ResMut<Assets<Mesh>>,
+        mut materials: ResMut<Assets<StandardMaterial>>,
+    ) {
+        let material = materials.add(StandardMaterial {
+            base_color: Color::srgb(1.0, 0.55, 0.1),
+            unlit: true,
+            ..Default::default()
+        });
+        commands.spawn((
+            Mesh3d(meshes.add(Cylinder::new(0.2e-3, 1.0))),
+            MeshMaterial3d(material.clone()),
+            Transform::default(),
+            Visibility::Hidden,
+            ForceArrow::Shaft,
+        ));
+        commands.spawn((
+            Mesh3d(meshes.add(Cone {
+                radius: 0.5e-3,
+                height: 1.2e-3,
+            })),
+            MeshMaterial3d(material),
+            Transform::default(),
+            Visibility::Hidden,
+            ForceArrow::Head,
+        ));
+    }
+
+    /// The arrow starts at the blade's centre and points along the rendered
+    /// force, its length proportional to it.
+    fn force_arrow(
+        status: Res<HapticsStatus>,
+        mut q: Query<(&ForceArrow, &mut Transform, &mut Visibility)>,
+    ) {
+        let s = &status.state;
+        let f = Vec3::new(s.force.x as f32, s.force.y as f32, s.force.z as f32);
+        let p = s.proxy.translation.vector;
+        let origin = Vec3::new(p.x as f32, p.y as f32, p.z as f32);
+        let len = (f.length() * ARROW_M_PER_N).min(0.025);
+        let shown = len > 2e-5 && f.is_finite();
+        let dir = f.normalize_or(Vec3::Y);
+        let rotation = Quat::from_rotation_arc(Vec3::Y, dir);
+        for (part, mut t, mut v) in &mut q {
+            *v = if shown {
+                Visibility::Visible
+            } else {
+                Visibility::Hidden
+            };
+            *t = match part {
+                ForceArrow::Shaft => Transform::from_translation(origin + dir * 0.5 * len)
+                    .with_rotation(rotation)
+                    .with_scale(Vec3::new(1.0, len, 1.0)),
+                ForceArrow::Head => Transform::from_translation(origin + dir * (len + 0.6e-3))
+                    .with_rotation(rotation),
+            };
+        }
     }
 
     fn setup(commands: &mut Commands, target: Vec3) {
@@ -495,14 +684,21 @@ mod viewer {
         }
     }
 
+    /// Moves the vectis (or, with haptics, the hand) with the keys.
     fn keyboard_tool(
         keys: Res<ButtonInput<KeyCode>>,
         time: Res<Time>,
+        hand: Option<Res<Hand>>,
         mut q: Query<(&mut Vectis, &mut Transform)>,
     ) {
         for (mut v, mut t) in &mut q {
             if keys.just_pressed(KeyCode::Space) {
-                v.scripted = !v.scripted;
+                match &hand {
+                    Some(h) => {
+                        h.0.paused.fetch_xor(true, Ordering::AcqRel);
+                    }
+                    None => v.scripted = !v.scripted,
+                }
             }
             let speed = 2e-3 * time.delta_secs();
             let (fwd, side, up) = (t.local_z(), t.local_x(), t.local_y());
@@ -520,13 +716,36 @@ mod viewer {
                 }
             }
             if d != Vec3::ZERO {
-                v.scripted = false;
-                t.translation += d.normalize() * speed;
+                let d = d.normalize() * speed;
+                match &hand {
+                    Some(h) => {
+                        for (k, o) in h.0.offset.iter().enumerate() {
+                            store(o, load(o) + f64::from(d[k]));
+                        }
+                    }
+                    None => {
+                        v.scripted = false;
+                        t.translation += d;
+                    }
+                }
             }
         }
     }
 
-    fn record(mut ui: ResMut<Ui>, diag: Res<SoftTissueDiagnostics>, time: Res<Time>) {
+    fn record(
+        mut ui: ResMut<Ui>,
+        diag: Res<SoftTissueDiagnostics>,
+        time: Res<Time>,
+        haptics: Option<Res<HapticsStatus>>,
+    ) {
+        if let Some(h) = haptics {
+            let s = &h.state;
+            ui.haptic_history
+                .push_back([s.stats.rate_hz as f32, 1e3 * s.force.norm() as f32]);
+            if ui.haptic_history.len() > 300 {
+                ui.haptic_history.pop_front();
+            }
+        }
         ui.frame_time = 0.9 * ui.frame_time + 0.1 * time.delta_secs();
         let fps = if ui.frame_time > 0.0 {
             1.0 / ui.frame_time
@@ -591,11 +810,15 @@ mod viewer {
         bodies: Query<Entity, With<SoftBody>>,
         mut vectis: Query<&mut Vectis>,
         lens: Query<&SoftBody, With<Lens>>,
+        haptics: Option<Res<HapticsStatus>>,
+        hand: Option<Res<Hand>>,
     ) -> Result {
         let ctx = contexts.ctx_mut()?;
         let s = &mut *ui_state;
         egui::Window::new("Soft tissue")
             .default_width(320.0)
+            .default_height(740.0)
+            .vscroll(true)
             .show(ctx, |ui| {
                 ui.heading("Effects");
                 ui.checkbox(&mut config.contacts, "contacts");
@@ -604,8 +827,15 @@ mod viewer {
                 if ui.checkbox(&mut s.gravity, "gravity").changed() {
                     config.gravity = s.gravity.then_some(bevy::math::DVec3::new(0.0, 0.0, -9.81));
                 }
-                for mut v in &mut vectis {
-                    ui.checkbox(&mut v.scripted, "scripted vectis path (Space)");
+                if let Some(hand) = &hand {
+                    let mut paused = hand.0.paused.load(Ordering::Acquire);
+                    if ui.checkbox(&mut paused, "hand paused (Space)").changed() {
+                        hand.0.paused.store(paused, Ordering::Release);
+                    }
+                } else {
+                    for mut v in &mut vectis {
+                        ui.checkbox(&mut v.scripted, "scripted vectis path (Space)");
+                    }
                 }
                 ui.separator();
                 ui.heading("Preconditioner and refresh policy");
@@ -685,6 +915,39 @@ mod viewer {
                     ));
                 }
             });
+        if let Some(h) = &haptics {
+            let s = &*ui_state;
+            egui::Window::new("Haptics (simulated device)")
+                .anchor(egui::Align2::RIGHT_TOP, egui::vec2(-10.0, 10.0))
+                .default_width(320.0)
+                .show(ctx, |ui| {
+                    let hc = |k: usize| s.haptic_history.iter().map(|r| r[k]).collect::<Vec<f32>>();
+                    chart(
+                        ui,
+                        "haptic rate (Hz)",
+                        &[("rate", hc(0), egui::Color32::LIGHT_GREEN)],
+                    );
+                    chart(
+                        ui,
+                        "rendered force (mN)",
+                        &[("|F|", hc(1), egui::Color32::from_rgb(255, 140, 30))],
+                    );
+                    let st = &h.state.stats;
+                    ui.label(format!(
+                        "tick p50 {:.3} ms, p99 {:.3} ms; jitter p99 {:.2} ms; \
+                         {:.1} LCP sweeps per tick; {} tool contacts",
+                        st.tick_p50 * 1e3,
+                        st.tick_p99 * 1e3,
+                        st.jitter_p99 * 1e3,
+                        st.lcp_iterations,
+                        h.state.contacts
+                    ));
+                    ui.label("arrow: the force on the hand, 1 mm per 2 mN");
+                    if let Some(e) = &h.error {
+                        ui.label(format!("haptic loop: {e}"));
+                    }
+                });
+        }
         Ok(())
     }
 }
