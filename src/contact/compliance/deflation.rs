@@ -49,7 +49,11 @@ pub(super) struct Deflation {
     g: Matrix6<f64>,
     b: Matrix6<f64>,
     tmp: Vec<Vec3>,
-    tmp2: Vec<Vec3>,
+    /// The six right-hand sides `Qᵀ A z`, their solutions and the solve's
+    /// scratch, interleaved by node (one solve reads the factor once).
+    rhs: Vec<[Vec3; 6]>,
+    sol: Vec<[Vec3; 6]>,
+    work: Vec<[Vec3; 6]>,
     /// Per pass: the rows this body touches, with their `U` and `V` rows.
     rows: Vec<u32>,
     u: Vec<Vector6<f64>>,
@@ -103,7 +107,9 @@ impl Deflation {
         let mut zaz = Matrix6::zeros();
         let mut s = Matrix6::zeros();
         self.tmp.resize(n, Vec3::zeros());
-        self.tmp2.resize(n, Vec3::zeros());
+        for buf in [&mut self.rhs, &mut self.sol, &mut self.work] {
+            buf.resize(n, [Vec3::zeros(); 6]);
+        }
         for k in 0..6 {
             let az = &mut self.az;
             az.resize(n, Vec3::zeros());
@@ -112,20 +118,22 @@ impl Deflation {
                 zaz[(l, k)] = dot(&self.z[l], az);
             }
             // y = P⁻¹ (A z) with P⁻¹ = Q (L D Lᵀ)⁻¹ Qᵀ, as the compliance
-            // applies it (`y` is the solve's scratch).
+            // applies it.
             for i in 0..n {
-                self.tmp2[i] = match view.warp {
+                self.rhs[i][k] = match view.warp {
                     Some(q) => q[i].transpose() * az[i],
                     None => az[i],
                 };
             }
+        }
+        f.solve_many(&self.rhs, &mut self.sol, &mut self.work);
+        for k in 0..6 {
             let y = &mut self.y[k];
             y.resize(n, Vec3::zeros());
-            f.solve(&self.tmp2, &mut self.tmp, y);
             for i in 0..n {
                 y[i] = match view.warp {
-                    Some(q) => q[i] * self.tmp[i],
-                    None => self.tmp[i],
+                    Some(q) => q[i] * self.sol[i][k],
+                    None => self.sol[i][k],
                 };
             }
         }
