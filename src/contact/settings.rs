@@ -70,7 +70,8 @@ pub struct ContactSettings {
     /// accounts for ([`super::ContactReport::misaccounted_work`]). When that
     /// work exceeds `energy_tolerance` times the body's energy the factor is
     /// refreshed as for `consistency_tolerance`, in every pass. Default
-    /// 1e-5; `f64::INFINITY` never refreshes.
+    /// `f64::INFINITY`, never: with 1e-5 the cataract jam refreshed about
+    /// 1 000 times a run and fell from about 25 to 15–18 steps/s.
     pub energy_tolerance: f64,
     /// Complete a lagging factor with the body's rigid modes (`Factorized`
     /// compliance with a `Periodic`, `Async` or `AsyncLagged`

@@ -324,3 +324,44 @@ fn predicted_detection_linearizes_near_the_solution() {
         "states differ by {diff:e} m (springback {without:e} m)"
     );
 }
+
+#[test]
+fn refinement_passes_end_every_step_within_the_tolerance() {
+    // The coarse cataract push: the lens pressed into the slit needs
+    // refinement passes (each correction's recoil slides other vertices into
+    // the curved lips). A step that did not run out of passes ends within
+    // the penetration tolerance of the vectis; the refinement passes are
+    // frictionless.
+    use bevy_soft_tissue::scenes::cataract::{self, CataractParams};
+    let built = cataract::build(
+        &CataractParams::coarse().push_only(),
+        BodySettings::default(),
+    )
+    .unwrap();
+    let settings = built.contact;
+    let mut scene = Scene::new(settings).unwrap();
+    scene.add_body(built.lens);
+    scene.add_body(built.eye);
+    scene.add_tool(built.vectis);
+    let tol = settings.penetration_tolerance;
+    let mut refined = 0;
+    for s in 0..480 {
+        scene.tools[0]
+            .set_pose(built.path.pose((s + 1) as f64 / 60.0))
+            .unwrap();
+        let r = scene.step(1.0 / 60.0).unwrap();
+        if r.passes > 1 {
+            refined += 1;
+            assert!(
+                scene.contact.contacts().iter().all(|c| c.mu == 0.0),
+                "step {s}: a refinement pass with friction"
+            );
+        }
+        if r.passes < settings.max_passes {
+            // Measured by the tool's own proximity query, not the report.
+            let p = penetration(&scene);
+            assert!(p <= tol, "step {s}: {p:e} m into the vectis");
+        }
+    }
+    assert!(refined > 0, "no step needed a refinement pass");
+}
