@@ -9,7 +9,8 @@
 //! one second more, 1080, or 540 with `--push-only`), `--push-only` (the vectis
 //! stops with the lens pressed into the slit instead of delivering it out of
 //! the eye, `CataractParams::push_only`), `--coarse`
-//! (light meshes), `--preconditioner jacobi|exact|periodicN|async`,
+//! (light meshes), `--preconditioner jacobi|exact|periodicN|async|lagN`
+//! (`lagN`: `AsyncLagged`, the factor arrives exactly N steps later),
 //! `--compliance factorized|exact|diagonal|rest|dense`, `--reuse N` (steps a
 //! factor serves the compliance, `ContactSettings::factor_reuse`), `--passes N`
 //! (contact passes per step), `--no-predict` (detect at the free motion, not
@@ -129,6 +130,11 @@ fn parse() -> Result<Args, String> {
                     "jacobi" => PreconditionerKind::Jacobi,
                     "exact" => PreconditionerKind::Exact,
                     "async" => PreconditionerKind::Async,
+                    p if p.starts_with("lag") => PreconditionerKind::AsyncLagged {
+                        lag: p[3..]
+                            .parse()
+                            .map_err(|_| format!("bad preconditioner `{v}`"))?,
+                    },
                     p if p.starts_with("periodic") => PreconditionerKind::Periodic {
                         every: p[8..]
                             .parse()
