@@ -715,23 +715,35 @@ mod x86 {
 mod tests {
     use super::*;
 
-    /// The AVX2/FMA forward and backward solves (where the CPU has them) match
-    /// the portable ones on a factor with arbitrary blocks.
-    #[test]
-    fn solve_kernels_agree() {
-        let mesh =
-            crate::mesh::generate::box_mesh(Vec3::zeros(), Vec3::new(1.0, 1.0, 2.0), [2, 2, 4])
-                .unwrap();
+    /// Arbitrary but reproducible values.
+    fn val(i: usize) -> f64 {
+        ((i as f64) * 0.618).sin() * 0.3
+    }
+
+    /// A factor of a box mesh's pattern with arbitrary blocks and pivots.
+    fn arbitrary_factor(cells: [usize; 3]) -> (Arc<LdltSymbolic>, LdltFactor) {
+        let mesh = crate::mesh::generate::box_mesh(Vec3::zeros(), Vec3::new(1.0, 1.0, 2.0), cells)
+            .unwrap();
         let pattern = BlockPattern::new(mesh.num_vertices(), mesh.tets());
         let sym = Arc::new(LdltSymbolic::new(&pattern).unwrap());
         let mut f = sym.alloc_factor();
-        let val = |i: usize| ((i as f64) * 0.618).sin() * 0.3;
         for (p, b) in f.l.iter_mut().enumerate() {
             *b = Mat3::from_fn(|r, c| val(9 * p + 3 * c + r));
         }
         for (k, d) in f.ldiag.iter_mut().enumerate() {
             *d = [val(7 * k), val(7 * k + 1), val(7 * k + 2)];
         }
+        for (k, d) in f.d.iter_mut().enumerate() {
+            *d = Vec3::new(1.0 + val(5 * k).abs(), 2.0, 0.5 + val(5 * k + 1).abs());
+        }
+        (sym, f)
+    }
+
+    /// The AVX2/FMA forward and backward solves (where the CPU has them) match
+    /// the portable ones on a factor with arbitrary blocks.
+    #[test]
+    fn solve_kernels_agree() {
+        let (sym, f) = arbitrary_factor([2, 2, 4]);
         let y0: Vec<Vec3> = (0..sym.n)
             .map(|i| Vec3::new(val(3 * i + 1000), val(3 * i + 1001), val(3 * i + 1002)))
             .collect();
@@ -751,22 +763,7 @@ mod tests {
     /// Solving several right-hand sides at once gives what solving each gives.
     #[test]
     fn solve_many_matches_solve() {
-        let mesh =
-            crate::mesh::generate::box_mesh(Vec3::zeros(), Vec3::new(1.0, 1.0, 2.0), [2, 3, 4])
-                .unwrap();
-        let pattern = BlockPattern::new(mesh.num_vertices(), mesh.tets());
-        let sym = Arc::new(LdltSymbolic::new(&pattern).unwrap());
-        let mut f = sym.alloc_factor();
-        let val = |i: usize| ((i as f64) * 0.618).sin() * 0.3;
-        for (p, b) in f.l.iter_mut().enumerate() {
-            *b = Mat3::from_fn(|r, c| val(9 * p + 3 * c + r));
-        }
-        for (k, d) in f.ldiag.iter_mut().enumerate() {
-            *d = [val(7 * k), val(7 * k + 1), val(7 * k + 2)];
-        }
-        for (k, d) in f.d.iter_mut().enumerate() {
-            *d = Vec3::new(1.0 + val(5 * k).abs(), 2.0, 0.5 + val(5 * k + 1).abs());
-        }
+        let (sym, f) = arbitrary_factor([2, 3, 4]);
         let n = sym.n;
         let b: Vec<[Vec3; 3]> = (0..n)
             .map(|i| {
