@@ -24,6 +24,9 @@ pub const LOG_FLOOR: f64 = 1e-16;
 
 const SIZE: (u32, u32) = (1100, 700);
 
+/// Width of the Pareto figure's key, pixels.
+const KEY_WIDTH: u32 = 260;
+
 fn pe(e: impl std::fmt::Display) -> SoftTissueError {
     SoftTissueError::Study(format!("drawing a figure: {e}"))
 }
@@ -117,6 +120,8 @@ pub fn error_over_time(case: &CaseResult, path: &Path) -> Result<()> {
 pub fn pareto(case: &CaseResult, path: &Path) -> Result<()> {
     font();
     let root = area(path)?;
+    // The chart on the left, a key of every point on the right.
+    let (plot, key) = root.split_horizontally(SIZE.0 - KEY_WIDTH);
     let all = case.summaries();
     let exact_ms = all
         .iter()
@@ -150,7 +155,7 @@ pub fn pareto(case: &CaseResult, path: &Path) -> Result<()> {
             "; exact rerun: {m:.1} ms, error 0"
         ))
     );
-    let mut chart = frame(&root, caption, 22)
+    let mut chart = frame(&plot, caption, 20)
         .build_cartesian_2d(x.clone().log_scale(), y.clone().log_scale())
         .map_err(pe)?;
     chart
@@ -166,46 +171,45 @@ pub fn pareto(case: &CaseResult, path: &Path) -> Result<()> {
             RED.stroke_width(2),
         ))
         .map_err(pe)?;
-    // Label front points first, then the rest where there is room.
-    let (lx, ly) = ((x.end / x.start).log10(), (y.end / y.start).log10());
-    let mut order: Vec<usize> = k.into_iter().collect();
-    order.extend(front.iter().copied().filter(|&i| Some(i) != k));
-    order.extend((0..pts.len()).filter(|i| !front.contains(i)));
-    let mut labelled: Vec<(f64, f64)> = Vec::new();
-    for i in order {
-        let p = pts[i];
-        let on = front.contains(&i);
-        let color = if on { RED } else { BLUE };
+    // Every point is numbered (short labels, so that a cluster stays
+    // readable); the key names each number. Hollow: more penetration than
+    // the front admits.
+    for (i, &p) in pts.iter().enumerate() {
+        let color = if front.contains(&i) { RED } else { BLUE };
         let dot = if ok[i].max_penetration <= PARETO_MAX_PENETRATION {
             Circle::new((0, 0), 5, color.filled())
         } else {
             Circle::new((0, 0), 5, color.stroke_width(2))
         };
-        let (u, v) = (p.0.log10() / lx, p.1.log10() / ly);
-        let room = labelled
-            .iter()
-            .all(|&(a, b)| (a - u).abs() > 0.12 || (b - v).abs() > 0.03);
-        let elem = EmptyElement::at(p) + dot;
-        if room {
-            labelled.push((u, v));
-            let label = if Some(i) == k {
-                format!("{} (knee)", ok[i].variant)
-            } else {
-                ok[i].variant.clone()
-            };
-            chart
-                .draw_series(std::iter::once(
-                    elem + Text::new(label, (7, -7), ("sans-serif", 13)),
-                ))
-                .map_err(pe)?;
-        } else {
-            chart.draw_series(std::iter::once(elem)).map_err(pe)?;
+        let label = Text::new(format!("{}", i + 1), (6, -14), ("sans-serif", 12));
+        chart
+            .draw_series(std::iter::once(EmptyElement::at(p) + dot + label))
+            .map_err(pe)?;
+    }
+    let line = 15;
+    let text = |s: String, row: i32, color: RGBColor| {
+        Text::new(
+            s,
+            (8, 40 + row * line),
+            ("sans-serif", 12).into_font().color(&color),
+        )
+    };
+    key.draw(&text("key (red: on the front)".into(), 0, BLACK))
+        .map_err(pe)?;
+    for (i, s) in ok.iter().enumerate() {
+        let color = if front.contains(&i) { RED } else { BLUE };
+        let mut name = format!("{:>2} {}", i + 1, s.variant);
+        if Some(i) == k {
+            name.push_str(" (knee)");
         }
+        if s.max_penetration > PARETO_MAX_PENETRATION {
+            name.push_str(" (penetrates)");
+        }
+        key.draw(&text(name, i as i32 + 1, color)).map_err(pe)?;
     }
     root.present().map_err(pe)
 }
 
-/// A chart on `root` with the study's margins and a caption of `size` points.
 fn frame<'a, 'b, DB: DrawingBackend>(
     root: &'a DrawingArea<DB, Shift>,
     caption: impl AsRef<str>,
