@@ -121,6 +121,46 @@ fn the_residual_is_zero_exactly_at_open_sticking_and_sliding_solutions() {
     assert!(check([-1.0, 0.0, 0.0], 0.5, [0.5, 0.0, 0.0]) > 0.1);
 }
 
+#[test]
+fn the_reported_friction_residual_separates_slip_from_rounding_at_the_rim() {
+    let (mu, wtt) = (0.5, 0.1);
+    // Sticking well inside the cone: any slip is the residual.
+    assert_eq!(
+        lcp::friction_residual([1.0, 0.1, 0.0], [3e-5, 4e-5], mu, wtt),
+        5e-5
+    );
+    assert_eq!(
+        lcp::friction_residual([1.0, 0.1, 0.0], [0.0, 0.0], mu, wtt),
+        0.0
+    );
+    // Sliding on the rim against the slip: none.
+    assert!(lcp::friction_residual([1.0, -0.5, 0.0], [2e-5, 0.0], mu, wtt) < 1e-20);
+    // A rounding error inside the rim, slip opposed: the force's distance to
+    // the rim times W_tt (metres), not the whole slip.
+    let r = lcp::friction_residual([1.0, -0.5 * (1.0 - 2e-9), 0.0], [2e-5, 0.0], mu, wtt);
+    assert!(r > 0.0 && r <= 1e-9 * wtt * 1.01, "{r:e}");
+    // On the rim but turned with the slip, or across it: the slip.
+    assert_eq!(
+        lcp::friction_residual([1.0, 0.5, 0.0], [2e-5, 0.0], mu, wtt),
+        2e-5
+    );
+    assert_eq!(
+        lcp::friction_residual([1.0, 0.0, 0.5], [2e-5, 0.0], mu, wtt),
+        2e-5
+    );
+    // Outside the cone: the excess times W_tt comes on top.
+    let r = lcp::friction_residual([1.0, -0.6, 0.0], [2e-5, 0.0], mu, wtt);
+    assert!((r - 0.1 * wtt).abs() < 1e-12, "{r:e}");
+    // No normal force: only a tangential force is wrong.
+    assert_eq!(
+        lcp::friction_residual([0.0, 0.0, 0.0], [1e-3, 0.0], mu, wtt),
+        0.0
+    );
+    assert!(
+        (lcp::friction_residual([0.0, 0.2, 0.0], [0.0, 0.0], mu, wtt) - 0.2 * wtt).abs() < 1e-15
+    );
+}
+
 proptest! {
     #![proptest_config(seeded(2000))]
 

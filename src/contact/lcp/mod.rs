@@ -68,5 +68,5 @@ mod warm;
 pub use block::local_coulomb;
 pub use problem::ContactProblem;
 pub use solve::{LcpScratch, solve};
-pub use types::{LcpReport, LcpSettings, LcpSolver, residual};
+pub use types::{LcpReport, LcpSettings, LcpSolver, friction_residual, residual};
 pub use warm::{ContactKey, OtherKey, WarmStart};

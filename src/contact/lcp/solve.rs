@@ -1,7 +1,7 @@
 //! The solve loop shared by every solver: sweeps, the stopping tests, NNCG's
 //! momentum and the subspace steps.
 
-use super::types::{LcpReport, LcpSettings, LcpSolver, exact_delta, residual};
+use super::types::{LcpReport, LcpSettings, LcpSolver, exact_delta, friction_residual, residual};
 use super::{block, pgs, subspace};
 
 /// Scratch of an LCP solve, sized on first use and kept between solves.
@@ -144,20 +144,10 @@ pub fn solve(
         report.penetration = report.penetration.max(-dn);
         if rows[c + 1] - r == 3 {
             let d = [delta[r + 1], delta[r + 2]];
-            let l = [lambda[r + 1], lambda[r + 2]];
-            let dnorm = (d[0] * d[0] + d[1] * d[1]).sqrt();
-            let lnorm = (l[0] * l[0] + l[1] * l[1]).sqrt();
-            let limit = mu[c] * lambda[r];
+            let l = [lambda[r], lambda[r + 1], lambda[r + 2]];
             let wtt = w[(r + 1) * m + r + 1].max(w[(r + 2) * m + r + 2]);
-            let res = if lnorm < limit * (1.0 - 1e-9) || limit == 0.0 {
-                if limit == 0.0 { 0.0 } else { dnorm }
-            } else {
-                // Sliding: δ_t must be anti-parallel to λ_t.
-                let along = -(d[0] * l[0] + d[1] * l[1]) / lnorm;
-                (dnorm * dnorm - along * along).max(0.0).sqrt() + (-along).max(0.0)
-            };
-            let cone = (lnorm - limit).max(0.0) * wtt;
-            report.friction = report.friction.max(res + cone);
+            let res = friction_residual(l, d, mu[c], wtt);
+            report.friction = report.friction.max(res);
         }
     }
     report

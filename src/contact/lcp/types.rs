@@ -105,8 +105,10 @@ pub struct LcpReport {
     pub residual: f64,
     /// Largest normal complementarity residual `|min(δ_n, W_nn λ_n)|` (metres).
     pub complementarity: f64,
-    /// Largest friction residual (metres): `‖δ_t‖` when sticking, the part of
-    /// `δ_t` not opposed to `λ_t` when sliding, plus any cone violation scaled by `W_tt`.
+    /// Largest friction residual (metres): per contact the smaller of `‖δ_t‖`
+    /// (what sticking leaves) and the part of `δ_t` not opposed to `λ_t` plus
+    /// `λ_t`'s distance from the cone's rim scaled by `W_tt` (what sliding
+    /// leaves), plus any cone violation scaled by `W_tt`.
     pub friction: f64,
     /// Largest predicted penetration `max(−δ_n, 0)` (metres).
     pub penetration: f64,
@@ -164,6 +166,34 @@ pub(super) fn project_cone(l: [f64; 3], mu: f64) -> [f64; 3] {
     let n = (l[0] + mu * t) / (1.0 + mu * mu);
     let s = if t > 0.0 { mu * n / t } else { 0.0 };
     [n, l[1] * s, l[2] * s]
+}
+
+/// One contact's friction residual in metres, as [`LcpReport::friction`]
+/// measures it: with forces `l = (λ_n, λ_t)`, tangential displacement `d`
+/// (`δ_t`), friction coefficient `mu` and the larger tangential diagonal
+/// `wtt` of `W`, the smaller of what sticking leaves (`‖δ_t‖`) and what
+/// sliding leaves (the part of `δ_t` not opposed to `λ_t`, plus `λ_t`'s
+/// distance inside the rim times `wtt`), plus any part of `λ_t` outside the
+/// cone times `wtt` (all there is when `μ λ_n = 0`). The sliding branch is continuous at the rim: a `λ_t` a
+/// rounding error inside it with `δ_t` opposed is not read as a sticking
+/// contact that slides.
+pub fn friction_residual(l: [f64; 3], d: [f64; 2], mu: f64, wtt: f64) -> f64 {
+    let limit = mu * l[0];
+    let lnorm = l[1].hypot(l[2]);
+    let cone = (lnorm - limit).max(0.0) * wtt;
+    if limit == 0.0 {
+        return cone;
+    }
+    let dnorm = d[0].hypot(d[1]);
+    let slide = if lnorm > 0.0 {
+        let along = -(d[0] * l[1] + d[1] * l[2]) / lnorm;
+        (dnorm * dnorm - along * along).max(0.0).sqrt()
+            + (-along).max(0.0)
+            + (limit - lnorm).max(0.0) * wtt
+    } else {
+        f64::INFINITY
+    };
+    dnorm.min(slide) + cone
 }
 
 /// The relative natural-map residual of forces `lambda` with `delta = W λ + δ₀`
