@@ -5,7 +5,7 @@
 //! cargo run --release --example cataract -- --headless --steps 600     # per-phase timings
 //! ```
 //!
-//! Options: `--headless`, `--steps N` (headless, default: the scripted path and
+//! Options (`--help` lists them): `--headless`, `--steps N` (headless, default: the scripted path and
 //! one second more, 1080, or 540 with `--push-only`), `--push-only` (the vectis
 //! stops with the lens pressed into the slit instead of delivering it out of
 //! the eye, `CataractParams::push_only`), `--coarse`
@@ -16,6 +16,7 @@
 //! (contact passes per step), `--no-predict` (detect at the free motion, not
 //! at the predicted positions, `ContactSettings::predict`),
 //! `--no-rigid-modes` (`ContactSettings::rigid_modes` off),
+//! `--consistency-tolerance X` (`ContactSettings::consistency_tolerance`),
 //! `--energy-tolerance X` (`ContactSettings::energy_tolerance`) — accuracy
 //! against time; `--lcp pgs|block|nncg|subspace` (the contact solver, `LcpSolver`);
 //! `--record-lcp DIR` writes each step's first-pass contact problem with at
@@ -47,148 +48,110 @@
 use std::process::ExitCode;
 
 use bevy_soft_tissue::body::BodySettings;
-use bevy_soft_tissue::contact::ComplianceMode;
+use bevy_soft_tissue::contact::{ComplianceMode, LcpSolver};
 use bevy_soft_tissue::mesh::generate::LENS_RADII;
 use bevy_soft_tissue::plugin::SoftTissueConfig;
 use bevy_soft_tissue::scenes::cataract::CataractParams;
 
 mod common;
 use bevy_soft_tissue::solver::PreconditionerKind;
+use clap::Parser;
 use common::headless::{Recording, run_headless_recording};
 
+/// The cataract (MSICS) nucleus-extraction scene: in a window with the
+/// `viewer` feature and a display, otherwise headless with per-phase timings.
+#[derive(Parser)]
+#[command(long_about = None)]
 struct Args {
+    /// Run without a window and print per-phase timings.
+    #[arg(long)]
     headless: bool,
+    /// Steps to run headless (default: the scripted path and one second
+    /// more, 1080, or 540 with `--push-only`).
+    #[arg(long, default_value_t = 0)]
     steps: usize,
+    /// Light meshes.
+    #[arg(long)]
     coarse: bool,
+    /// The vectis stops with the lens pressed into the slit instead of
+    /// delivering it out of the eye.
+    #[arg(long)]
     push_only: bool,
+    /// jacobi, exact, periodicN, async, or lagN (the factor arrives exactly
+    /// N steps after it was requested).
+    #[arg(long, default_value = "async", value_parser = preconditioner)]
     preconditioner: PreconditionerKind,
+    /// factorized, exact, diagonal, rest or dense.
+    #[arg(long, default_value = "factorized", value_parser = compliance)]
     compliance: ComplianceMode,
+    /// Steps a factor serves the compliance (`ContactSettings::factor_reuse`).
+    #[arg(long)]
     reuse: Option<u64>,
+    /// Contact passes per step.
+    #[arg(long)]
     passes: Option<usize>,
+    /// Detect at the free motion, not at the predicted positions.
+    #[arg(long = "no-predict", action = clap::ArgAction::SetFalse)]
     predict: bool,
+    /// Switch off the rigid-mode completion of a lagging factor.
+    #[arg(long = "no-rigid-modes", action = clap::ArgAction::SetFalse)]
     rigid_modes: bool,
+    /// `ContactSettings::consistency_tolerance` (`inf`: never refresh).
+    #[arg(long)]
+    consistency_tolerance: Option<f64>,
+    /// `ContactSettings::energy_tolerance` (default: off).
+    #[arg(long)]
     energy_tolerance: Option<f64>,
-    lcp: bevy_soft_tissue::contact::LcpSolver,
+    /// The contact solver: pgs, block, nncg or subspace.
+    #[arg(long, default_value = "subspace", value_parser = lcp_solver)]
+    lcp: LcpSolver,
+    /// Write each step's first-pass contact problem to this folder (for the
+    /// `lcp` bench).
+    #[arg(long = "record-lcp")]
     record: Option<std::path::PathBuf>,
+    /// Record only problems with at least this many contacts.
+    #[arg(long = "record-min-contacts", default_value_t = 91)]
     record_min: usize,
+    /// A simulated haptic device drives the vectis (window only).
+    #[arg(long)]
     haptics: bool,
 }
 
-fn parse() -> Result<Args, String> {
-    let mut a = Args {
-        headless: false,
-        steps: 0,
-        coarse: false,
-        push_only: false,
-        preconditioner: PreconditionerKind::Async,
-        compliance: ComplianceMode::Factorized,
-        reuse: None,
-        passes: None,
-        predict: true,
-        rigid_modes: true,
-        energy_tolerance: None,
-        lcp: Default::default(),
-        record: None,
-        record_min: 91,
-        haptics: false,
-    };
-    let args: Vec<String> = std::env::args().skip(1).collect();
-    let mut i = 0;
-    while i < args.len() {
-        let value = || {
-            args.get(i + 1)
-                .cloned()
-                .ok_or(format!("{} needs a value", args[i]))
-        };
-        let number = || {
-            value()?
-                .parse::<u64>()
-                .map_err(|_| format!("{} needs a whole number", args[i]))
-        };
-        match args[i].as_str() {
-            "--headless" => a.headless = true,
-            "--coarse" => a.coarse = true,
-            "--push-only" => a.push_only = true,
-            "--no-predict" => a.predict = false,
-            "--no-rigid-modes" => a.rigid_modes = false,
-            "--haptics" => a.haptics = true,
-            "--energy-tolerance" => {
-                let v = value()?;
-                a.energy_tolerance = Some(
-                    v.parse::<f64>()
-                        .map_err(|_| format!("--energy-tolerance needs a number, not `{v}`"))?,
-                );
-                i += 1;
-            }
-            "--steps" => {
-                a.steps = number()? as usize;
-                i += 1;
-            }
-            "--preconditioner" => {
-                let v = value()?;
-                a.preconditioner = match v.as_str() {
-                    "jacobi" => PreconditionerKind::Jacobi,
-                    "exact" => PreconditionerKind::Exact,
-                    "async" => PreconditionerKind::Async,
-                    p if p.starts_with("lag") => PreconditionerKind::AsyncLagged {
-                        lag: p[3..]
-                            .parse()
-                            .map_err(|_| format!("bad preconditioner `{v}`"))?,
-                    },
-                    p if p.starts_with("periodic") => PreconditionerKind::Periodic {
-                        every: p[8..]
-                            .parse()
-                            .map_err(|_| format!("bad preconditioner `{v}`"))?,
-                    },
-                    _ => return Err(format!("unknown preconditioner `{v}`")),
-                };
-                i += 1;
-            }
-            "--lcp" => {
-                use bevy_soft_tissue::contact::LcpSolver;
-                let v = value()?;
-                a.lcp = match v.as_str() {
-                    "pgs" => LcpSolver::ProjectedGaussSeidel,
-                    "block" => LcpSolver::BlockGaussSeidel,
-                    "nncg" => LcpSolver::Nncg,
-                    "subspace" => LcpSolver::Subspace,
-                    _ => return Err(format!("unknown LCP solver `{v}`")),
-                };
-                i += 1;
-            }
-            "--record-lcp" => {
-                a.record = Some(value()?.into());
-                i += 1;
-            }
-            "--record-min-contacts" => {
-                a.record_min = number()? as usize;
-                i += 1;
-            }
-            "--reuse" => {
-                a.reuse = Some(number()?);
-                i += 1;
-            }
-            "--passes" => {
-                a.passes = Some(number()? as usize);
-                i += 1;
-            }
-            "--compliance" => {
-                let v = value()?;
-                a.compliance = match v.as_str() {
-                    "factorized" => ComplianceMode::Factorized,
-                    "exact" => ComplianceMode::Exact,
-                    "diagonal" => ComplianceMode::Diagonal,
-                    "rest" => ComplianceMode::RestPrecomputed,
-                    "dense" => ComplianceMode::DenseRows,
-                    _ => return Err(format!("unknown compliance `{v}`")),
-                };
-                i += 1;
-            }
-            other => return Err(format!("unknown argument `{other}`")),
-        }
-        i += 1;
-    }
-    Ok(a)
+fn preconditioner(v: &str) -> Result<PreconditionerKind, String> {
+    let whole = |s: &str| s.parse().map_err(|_| format!("bad preconditioner `{v}`"));
+    Ok(match v {
+        "jacobi" => PreconditionerKind::Jacobi,
+        "exact" => PreconditionerKind::Exact,
+        "async" => PreconditionerKind::Async,
+        p if p.starts_with("lag") => PreconditionerKind::AsyncLagged {
+            lag: whole(&p[3..])?,
+        },
+        p if p.starts_with("periodic") => PreconditionerKind::Periodic {
+            every: whole(&p[8..])?,
+        },
+        _ => return Err(format!("unknown preconditioner `{v}`")),
+    })
+}
+
+fn compliance(v: &str) -> Result<ComplianceMode, String> {
+    Ok(match v {
+        "factorized" => ComplianceMode::Factorized,
+        "exact" => ComplianceMode::Exact,
+        "diagonal" => ComplianceMode::Diagonal,
+        "rest" => ComplianceMode::RestPrecomputed,
+        "dense" => ComplianceMode::DenseRows,
+        _ => return Err(format!("unknown compliance `{v}`")),
+    })
+}
+
+fn lcp_solver(v: &str) -> Result<LcpSolver, String> {
+    Ok(match v {
+        "pgs" => LcpSolver::ProjectedGaussSeidel,
+        "block" => LcpSolver::BlockGaussSeidel,
+        "nncg" => LcpSolver::Nncg,
+        "subspace" => LcpSolver::Subspace,
+        _ => return Err(format!("unknown LCP solver `{v}`")),
+    })
 }
 
 fn headless(args: &Args, params: &CataractParams, config: SoftTissueConfig) -> ExitCode {
@@ -306,14 +269,7 @@ fn headless(args: &Args, params: &CataractParams, config: SoftTissueConfig) -> E
 }
 
 fn main() -> ExitCode {
-    let args = match parse() {
-        Ok(a) => a,
-        Err(e) => {
-            eprintln!("{e}");
-            return ExitCode::FAILURE;
-        }
-    };
-    let mut args = args;
+    let mut args = Args::parse();
     let mut params = if args.coarse {
         CataractParams::coarse()
     } else {
@@ -336,6 +292,9 @@ fn main() -> ExitCode {
     }
     config.contact.predict = args.predict;
     config.contact.rigid_modes = args.rigid_modes;
+    if let Some(t) = args.consistency_tolerance {
+        config.contact.consistency_tolerance = t;
+    }
     if let Some(t) = args.energy_tolerance {
         config.contact.energy_tolerance = t;
     }
@@ -381,7 +340,7 @@ mod viewer {
     use bevy_egui::{EguiContexts, EguiPlugin, EguiPrimaryContextPass, egui};
     use bevy_soft_tissue::SoftTissuePlugins;
     use bevy_soft_tissue::body::BodySettings;
-    use bevy_soft_tissue::contact::ComplianceMode;
+    use bevy_soft_tissue::contact::{ComplianceMode, LcpSolver};
     use bevy_soft_tissue::haptics::{HapticSettings, SimulatedDevice, SimulatedHand};
     use bevy_soft_tissue::plugin::render::BodyColoring;
     use bevy_soft_tissue::plugin::{

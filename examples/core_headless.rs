@@ -13,6 +13,8 @@
 use bevy_soft_tissue::core_prelude::*;
 use bevy_soft_tissue::mesh::generate::LENS_RADII;
 
+use clap::Parser;
+
 mod common;
 use nalgebra::Rotation3;
 use std::process::ExitCode;
@@ -25,16 +27,29 @@ fn median(v: &mut [f64]) -> f64 {
     v[v.len() / 2]
 }
 
-fn parse_kind(s: &str) -> Option<PreconditionerKind> {
-    Some(match s {
+/// The deformation core on the paper-size lens, per preconditioner.
+#[derive(Parser)]
+#[command(long_about = None)]
+struct Args {
+    /// Steps per preconditioner.
+    #[arg(long, default_value_t = 200)]
+    steps: usize,
+    /// none, jacobi, exact, periodicN or async (default: a set of them).
+    #[arg(long, value_parser = parse_kind)]
+    preconditioner: Option<PreconditionerKind>,
+}
+
+fn parse_kind(s: &str) -> std::result::Result<PreconditionerKind, String> {
+    let bad = || format!("unknown preconditioner `{s}`");
+    Ok(match s {
         "none" => PreconditionerKind::None,
         "jacobi" => PreconditionerKind::Jacobi,
         "exact" => PreconditionerKind::Exact,
         "async" => PreconditionerKind::Async,
         p if p.starts_with("periodic") => PreconditionerKind::Periodic {
-            every: p[8..].parse().ok()?,
+            every: p[8..].parse().map_err(|_| bad())?,
         },
-        _ => return None,
+        _ => return Err(bad()),
     })
 }
 
@@ -127,35 +142,20 @@ fn run(kind: PreconditionerKind, steps: usize) -> Result<()> {
 }
 
 fn main() -> ExitCode {
-    let args: Vec<String> = std::env::args().collect();
-    let mut steps = 200;
-    let mut kinds = vec![
-        PreconditionerKind::Jacobi,
-        PreconditionerKind::Exact,
-        PreconditionerKind::Periodic { every: 1 },
-        PreconditionerKind::Periodic { every: 4 },
-        PreconditionerKind::Periodic { every: 16 },
-        PreconditionerKind::Periodic { every: u32::MAX },
-        PreconditionerKind::Async,
-    ];
-    let mut i = 1;
-    while i < args.len() {
-        match (args[i].as_str(), args.get(i + 1)) {
-            ("--steps", Some(v)) => steps = v.parse().unwrap_or(steps),
-            ("--preconditioner", Some(v)) => match parse_kind(v) {
-                Some(k) => kinds = vec![k],
-                None => {
-                    eprintln!("unknown preconditioner `{v}`");
-                    return ExitCode::FAILURE;
-                }
-            },
-            (a, _) => {
-                eprintln!("unknown argument `{a}`; use --steps N --preconditioner KIND");
-                return ExitCode::FAILURE;
-            }
-        }
-        i += 2;
-    }
+    let args = Args::parse();
+    let steps = args.steps;
+    let kinds = match args.preconditioner {
+        Some(k) => vec![k],
+        None => vec![
+            PreconditionerKind::Jacobi,
+            PreconditionerKind::Exact,
+            PreconditionerKind::Periodic { every: 1 },
+            PreconditionerKind::Periodic { every: 4 },
+            PreconditionerKind::Periodic { every: 16 },
+            PreconditionerKind::Periodic { every: u32::MAX },
+            PreconditionerKind::Async,
+        ],
+    };
     println!(
         "lens 1183 nodes / 5184 tets, nucleus 5x, h = 0.02 s, {steps} steps; times are medians in ms"
     );

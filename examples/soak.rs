@@ -17,28 +17,30 @@ use std::time::Instant;
 
 use bevy_soft_tissue::scenes::cataract::CataractParams;
 
+use clap::Parser;
+
 mod common;
 
+/// Soak: the cataract scene for many steps, the vectis going in and out.
+#[derive(Parser)]
+#[command(long_about = None)]
+struct Args {
+    /// Steps to run.
+    #[arg(long, default_value_t = 10_000)]
+    steps: usize,
+    /// Light meshes.
+    #[arg(long)]
+    coarse: bool,
+}
+
 fn main() -> ExitCode {
-    let mut steps = 10_000;
-    let mut params = CataractParams::default();
-    let mut args = std::env::args().skip(1);
-    while let Some(a) = args.next() {
-        match a.as_str() {
-            "--steps" => match args.next().and_then(|v| v.parse().ok()) {
-                Some(n) => steps = n,
-                None => {
-                    eprintln!("--steps needs a number");
-                    return ExitCode::FAILURE;
-                }
-            },
-            "--coarse" => params = CataractParams::coarse(),
-            other => {
-                eprintln!("unknown argument `{other}` (use --steps N, --coarse)");
-                return ExitCode::FAILURE;
-            }
-        }
-    }
+    let args = Args::parse();
+    let steps = args.steps;
+    let params = if args.coarse {
+        CataractParams::coarse()
+    } else {
+        CataractParams::default()
+    };
     let t0 = Instant::now();
     let s = match common::soak::run_soak(&params, steps, |i| {
         if (i + 1) % 1000 == 0 {

@@ -15,9 +15,19 @@ use bevy_soft_tissue::error::{Result, SoftTissueError};
 use bevy_soft_tissue::mesh::generate::{self, LENS_RADII};
 use bevy_soft_tissue::mesh::io;
 use bevy_soft_tissue::scenes::cataract::CataractParams;
+use clap::Parser;
+
+/// Writes the cataract scene's meshes as Gmsh files.
+#[derive(Parser)]
+#[command(long_about = None)]
+struct Args {
+    /// Output folder.
+    #[arg(default_value = "assets")]
+    dir: String,
+}
 
 fn main() -> Result<()> {
-    let dir = std::env::args().nth(1).unwrap_or_else(|| "assets".into());
+    let dir = Args::parse().dir;
     let p = CataractParams::default();
     let meshes = [
         ("lens.msh", generate::ellipsoid(LENS_RADII, p.lens_cells)?),
