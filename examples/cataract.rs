@@ -340,7 +340,7 @@ mod viewer {
     use bevy_egui::{EguiContexts, EguiPlugin, EguiPrimaryContextPass, egui};
     use bevy_soft_tissue::SoftTissuePlugins;
     use bevy_soft_tissue::body::BodySettings;
-    use bevy_soft_tissue::contact::{ComplianceMode, LcpSolver};
+    use bevy_soft_tissue::contact::ComplianceMode;
     use bevy_soft_tissue::haptics::{HapticSettings, SimulatedDevice, SimulatedHand};
     use bevy_soft_tissue::plugin::render::BodyColoring;
     use bevy_soft_tissue::plugin::{
