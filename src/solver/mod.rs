@@ -53,7 +53,11 @@
 //! one of them starving with an ever older factor. A body that stops asking
 //! (it stopped stepping: paused, failed, or kept but unused) leaves the queue
 //! after 250 ms, so it cannot hold up the bodies behind it; it queues again
-//! when it asks.
+//! when it asks. `AsyncLagged` bodies do not queue: their factor must be of
+//! the matrix handed over exactly `lag` steps before, whatever the other
+//! bodies do, so they hand it over at once (and count towards the limit the
+//! `Async` bodies see); with more lagged bodies than cores their
+//! factorizations share the cores.
 //!
 //! ## Contact columns made with the factor
 //! The contact compliance needs, with every new factor, the node columns
@@ -125,8 +129,11 @@ pub enum PreconditionerKind {
     /// the matrix handed over at step `n` is swapped in at step `n + lag`
     /// exactly (the stepping thread waits for the worker if it is not done,
     /// and keeps a finished factor until then). Results then do not depend on
-    /// thread timing, as long as the worker's turn is not held up by other
-    /// bodies' factorizations (one body, or fewer bodies than cores).
+    /// thread timing, whatever the number of bodies: a lagged body hands its
+    /// matrix over without waiting for a turn among the bodies' background
+    /// factorizations (`Async` bodies wait, so that at most `cores − 1` run at
+    /// once), so with more lagged bodies than cores their factorizations
+    /// share the cores.
     AsyncLagged {
         /// Steps between handing a matrix over and using its factor (≥ 1).
         lag: u32,
@@ -434,7 +441,8 @@ impl PreconditionerState {
                 }
                 if let Some(w) = &mut self.worker {
                     if w.is_alive() {
-                        w.submit(a, rotations, step, &mut self.prefetch);
+                        let queue = !matches!(self.kind, PreconditionerKind::AsyncLagged { .. });
+                        w.submit(a, rotations, step, &mut self.prefetch, queue);
                     } else if !w.in_flight()
                         && self
                             .state

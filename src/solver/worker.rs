@@ -79,6 +79,8 @@ pub struct AsyncFactorizer {
     fail: Arc<AtomicBool>,
     /// Test hook: the thread exits at its next job.
     stop: Arc<AtomicBool>,
+    /// Test hook: microseconds each job waits before it factorizes.
+    delay: Arc<std::sync::atomic::AtomicU64>,
     in_flight: bool,
     submitted_step: u64,
     pub(super) spare: Option<(Vec<Mat3>, Vec<Mat3>, LdltFactor)>,
@@ -106,6 +108,8 @@ impl AsyncFactorizer {
         let fail_w = Arc::clone(&fail);
         let stop = Arc::new(AtomicBool::new(false));
         let stop_w = Arc::clone(&stop);
+        let delay = Arc::new(std::sync::atomic::AtomicU64::new(0));
+        let delay_w = Arc::clone(&delay);
         let handle = std::thread::Builder::new()
             .name("soft-tissue-ldlt".into())
             .spawn(move || {
@@ -128,6 +132,10 @@ impl AsyncFactorizer {
                     let outcome = catch_unwind(AssertUnwindSafe(|| {
                         if fail_w.swap(false, Ordering::SeqCst) {
                             panic!("injected by AsyncFactorizer::inject_panic");
+                        }
+                        let us = delay_w.load(Ordering::Relaxed);
+                        if us > 0 {
+                            std::thread::sleep(std::time::Duration::from_micros(us));
                         }
                         let result = sym.factorize(&mat, &mut job.factor, &mut work);
                         // The compliance's node columns of the new factor, here
@@ -182,6 +190,7 @@ impl AsyncFactorizer {
             alive,
             fail,
             stop,
+            delay,
             in_flight: false,
             submitted_step: 0,
             spare,
@@ -209,6 +218,14 @@ impl AsyncFactorizer {
     #[doc(hidden)]
     pub fn inject_stop(&self) {
         self.stop.store(true, Ordering::SeqCst);
+    }
+
+    /// Test hook: every later job waits `delay` before it factorizes, as a
+    /// large matrix's factorization would take that long.
+    #[doc(hidden)]
+    pub fn inject_delay(&self, delay: std::time::Duration) {
+        let us = u64::try_from(delay.as_micros()).unwrap_or(u64::MAX);
+        self.delay.store(us, Ordering::Relaxed);
     }
 
     /// A flag that turns false once the worker thread has exited.
@@ -254,14 +271,21 @@ impl AsyncFactorizer {
         rotations: &[Mat3],
         step: u64,
         prefetch: &mut ColumnPrefetch,
+        queue: bool,
     ) {
         if self.in_flight {
             return;
         }
         // Share the machine: with several bodies, at most `cores − 1` factorizations run
         // at once; the others queue and hand over their matrix when their turn comes.
-        let limit = max_in_flight();
-        {
+        // Without `queue` (`AsyncLagged`, whose factor must be of the step it
+        // was asked at, whatever the other bodies do) the job goes out now and
+        // only counts towards the others' limit.
+        if !queue {
+            lock(&WAITING).retain(|&(w, _)| w != self.id);
+            IN_FLIGHT.fetch_add(1, Ordering::SeqCst);
+        } else {
+            let limit = max_in_flight();
             let mut waiting = lock(&WAITING);
             let now = Instant::now();
             let id = self.id;
@@ -287,6 +311,8 @@ impl AsyncFactorizer {
             }
         }
         let (Some(tx), Some((mut values, mut rots, factor))) = (&self.tx, self.spare.take()) else {
+            // Nothing to send with: give the slot back.
+            IN_FLIGHT.fetch_sub(1, Ordering::SeqCst);
             return;
         };
         values.copy_from_slice(&a.values);

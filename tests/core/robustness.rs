@@ -319,6 +319,57 @@ fn a_panicking_background_factorization_is_contained() {
     );
 }
 
+/// `AsyncLagged` keeps its promise with more bodies than background slots:
+/// every body's factor is of the matrix handed over `lag` steps before (its
+/// age stays in `[lag, 2 lag − 1]`), and two runs agree to the bit. A lagged
+/// body does not wait for a turn among the bodies' background
+/// factorizations (at most `cores − 1` at once); when it did, a factor came
+/// later than promised, at a step that depended on thread timing.
+#[test]
+fn async_lagged_keeps_its_lag_with_more_bodies_than_cores() {
+    let lag = 2;
+    let n = std::thread::available_parallelism().map_or(2, |c| c.get()) + 2;
+    let run = || {
+        let mut bodies: Vec<DeformableBody> = (0..n)
+            .map(|k| {
+                let mut b = clamped_beam();
+                let mut s = *b.settings();
+                s.preconditioner = PreconditionerKind::AsyncLagged { lag };
+                b.set_settings(s).unwrap();
+                // Different loads, so the bodies' matrices differ.
+                b.set_external_force(b.num_nodes() - 1, v3(0.0, 1e-3 * k as f64, 0.0))
+                    .unwrap();
+                // Factorizations as long as a large body's: the bodies' jobs
+                // overlap, so the slots run out.
+                b.step(0.01).unwrap();
+                b.preconditioner()
+                    .worker()
+                    .unwrap()
+                    .inject_delay(std::time::Duration::from_millis(5));
+                b
+            })
+            .collect();
+        for step in 1..14u64 {
+            for (k, b) in bodies.iter_mut().enumerate() {
+                b.step(0.01).unwrap();
+                let age = b.report().preconditioner.factor_age;
+                if step >= 2 * lag as u64 {
+                    assert!(
+                        (lag as u64..2 * lag as u64).contains(&age),
+                        "body {k} of {n}, step {step}: factor age {age}, lag {lag}"
+                    );
+                }
+            }
+        }
+        bodies
+            .iter()
+            .map(|b| b.positions().to_vec())
+            .collect::<Vec<_>>()
+    };
+    let (x1, x2) = (run(), run());
+    assert!(x1 == x2, "two runs of {n} lagged bodies differ");
+}
+
 /// Mutations of valid files: truncation, byte flips, numbers replaced by
 /// huge or odd values, lines dropped or repeated.
 #[derive(Debug, Clone)]
