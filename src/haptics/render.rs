@@ -7,7 +7,7 @@ use nalgebra::{Isometry3, Translation3, UnitQuaternion};
 
 use super::device::DeviceLimits;
 use super::types::HapticSettings;
-use crate::contact::lcp::{self, LcpScratch, LcpSettings};
+use crate::contact::lcp::{self, LcpScratch};
 use crate::contact::{Pose, ToolContactProblem};
 use crate::math::Vec3;
 
@@ -116,8 +116,8 @@ fn displaced(base: &Pose, q: &[f64; 6]) -> Pose {
 ///    (`⁻`: the previous tick);
 /// 2. the LCP `(W_TT + J C Jᵀ) λ + δ_T + J q*` with the cone, `C = 1/k'`,
 ///    warm-started from the previous tick (from the step's forces when a new
-///    problem arrives), sweeps in chunks until the residual tolerance or the
-///    time budget;
+///    problem arrives), one solve that sweeps until the residual tolerance
+///    or the time budget ([`lcp::solve_until`]);
 /// 3. the contact wrench `F = Jᵀ λ` (plus the refinement passes' share), the
 ///    proxy `q_p = q* + C F`: the coupling and the contact balance;
 /// 4. the device's output `F` times [`HapticSettings::force_scale`], scaled
@@ -134,20 +134,14 @@ pub struct HapticRenderer {
     lambda: Vec<f64>,
     scratch: LcpScratch,
     previous: Option<(Pose, Pose)>,
-    chunk: LcpSettings,
 }
 
 impl HapticRenderer {
     /// A renderer with `settings` (validate them first:
     /// [`HapticSettings::validate`]).
     pub fn new(settings: HapticSettings) -> Self {
-        let chunk = LcpSettings {
-            max_iterations: settings.lcp.max_iterations.clamp(1, 4),
-            ..settings.lcp
-        };
         Self {
             settings,
-            chunk,
             ..Default::default()
         }
     }
@@ -233,26 +227,22 @@ impl HapticRenderer {
         self.lambda.resize(m, 0.0);
         let mut out = TickOutput::default();
         if m > 0 {
-            loop {
-                let report = lcp::solve(
-                    &hp.w_coupled,
-                    &self.delta,
-                    &p.rows,
-                    &p.mu,
-                    &mut self.lambda,
-                    &self.chunk,
-                    &mut self.scratch,
-                );
-                out.iterations += report.iterations;
-                out.residual = report.residual;
-                out.converged = !report.capped;
-                if out.converged
-                    || out.iterations >= self.settings.lcp.max_iterations
-                    || start.elapsed().as_secs_f64() >= self.settings.budget
-                {
-                    break;
-                }
-            }
+            // The clock is read after every sweep (tens of nanoseconds; a
+            // sweep of the jam's tool rows takes microseconds).
+            let budget = self.settings.budget;
+            let report = lcp::solve_until(
+                &hp.w_coupled,
+                &self.delta,
+                &p.rows,
+                &p.mu,
+                &mut self.lambda,
+                &self.settings.lcp,
+                &mut self.scratch,
+                || start.elapsed().as_secs_f64() >= budget,
+            );
+            out.iterations = report.iterations;
+            out.residual = report.residual;
+            out.converged = !report.capped;
         }
         let (mut f, mut t) = p.wrench(&self.lambda);
         f += p.extra_force;

@@ -258,6 +258,7 @@ fn run(
         s.window_iterations += out.iterations;
         s.out.ticks += 1;
         s.out.tick_max = s.out.tick_max.max(work);
+        s.out.busy += work;
         s.out.overruns += u64::from(work > period);
         s.out.unconverged += u64::from(!out.converged);
         s.out.bad_poses += u64::from(out.bad_pose);

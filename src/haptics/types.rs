@@ -146,6 +146,9 @@ pub struct HapticStats {
     pub run_jitter_p99: f64,
     /// Longest tick since the start, seconds.
     pub tick_max: f64,
+    /// Seconds of tick work since the start: over [`HapticStats::elapsed`],
+    /// the share of a core the loop takes from the simulation.
+    pub busy: f64,
     /// 99th percentile of `|interval − period|` between tick starts, seconds.
     pub jitter_p99: f64,
     /// Mean LCP sweeps per tick over the last 100 ticks.

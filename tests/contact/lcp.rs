@@ -259,6 +259,61 @@ fn recorded_cataract_problems_meet_signorini_and_the_cone() {
     }
 }
 
+/// `solve_until` with a stop that never fires is `solve`, to the bit; a stop
+/// that fires after `k` sweeps ends the solve there, reported as capped,
+/// with `δ = W λ + δ₀` of the forces it stopped at; continuing from those
+/// forces reaches the tolerance (where the whole solve did).
+#[test]
+fn solve_until_stops_where_told_and_is_solve_otherwise() {
+    for (name, p) in shipped() {
+        let set = settings(LcpSolver::BlockGaussSeidel, 1e-6, 1000);
+        let (lambda, delta, rep) = p.solve(&set).unwrap();
+        let mut scratch = lcp::LcpScratch::default();
+        let mut l = p.lambda0.clone();
+        let r = lcp::solve_until(
+            &p.w,
+            &p.delta0,
+            &p.rows,
+            &p.mu,
+            &mut l,
+            &set,
+            &mut scratch,
+            || false,
+        );
+        assert_eq!(l, lambda, "{name}");
+        assert_eq!(scratch.delta(), &delta[..], "{name}");
+        assert_eq!(r.iterations, rep.iterations, "{name}");
+        assert!(rep.iterations > 3, "{name}: {rep:?}");
+
+        let mut l = p.lambda0.clone();
+        let mut sweeps = 0;
+        let r = lcp::solve_until(
+            &p.w,
+            &p.delta0,
+            &p.rows,
+            &p.mu,
+            &mut l,
+            &set,
+            &mut scratch,
+            || {
+                sweeps += 1;
+                sweeps == 3
+            },
+        );
+        assert_eq!(r.iterations, 3, "{name}");
+        assert!(r.capped && r.residual > 1e-6, "{name}: {r:?}");
+        let mut d = vec![0.0; p.m()];
+        for (i, di) in d.iter_mut().enumerate() {
+            *di = p.delta0[i] + (0..p.m()).map(|j| p.w[i * p.m() + j] * l[j]).sum::<f64>();
+        }
+        for (a, b) in d.iter().zip(scratch.delta()) {
+            assert!((a - b).abs() <= 1e-12 * (1.0 + a.abs()), "{name}: {a} {b}");
+        }
+        let r = lcp::solve(&p.w, &p.delta0, &p.rows, &p.mu, &mut l, &set, &mut scratch);
+        assert!(r.residual <= 1e-6 || rep.capped, "{name}: {r:?}");
+    }
+}
+
 #[test]
 fn the_subspace_solver_needs_no_more_sweeps_than_projected_gauss_seidel() {
     for (name, p) in shipped() {

@@ -67,6 +67,6 @@ mod warm;
 
 pub use block::local_coulomb;
 pub use problem::ContactProblem;
-pub use solve::{LcpScratch, solve};
+pub use solve::{LcpScratch, solve, solve_until};
 pub use types::{LcpReport, LcpSettings, LcpSolver, friction_residual, residual};
 pub use warm::{ContactKey, OtherKey, WarmStart};

@@ -35,6 +35,24 @@ pub fn solve(
     settings: &LcpSettings,
     scratch: &mut LcpScratch,
 ) -> LcpReport {
+    solve_until(w, delta0, rows, mu, lambda, settings, scratch, || false)
+}
+
+/// [`solve`] that also stops after any sweep at which `stop()` says so (a
+/// time budget, for example); the report is then `capped`. One solve, not a
+/// series of short ones: `δ = W λ + δ₀` (an `O(m²)` product) is formed at
+/// the start and the end only, and carried through the sweeps.
+#[allow(clippy::too_many_arguments)]
+pub fn solve_until(
+    w: &[f64],
+    delta0: &[f64],
+    rows: &[usize],
+    mu: &[f64],
+    lambda: &mut [f64],
+    settings: &LcpSettings,
+    scratch: &mut LcpScratch,
+    mut stop: impl FnMut() -> bool,
+) -> LcpReport {
     let m = delta0.len();
     let nncg = settings.solver == LcpSolver::Nncg;
     let sweep = match settings.solver {
@@ -98,7 +116,7 @@ pub fn solve(
         if converged {
             break;
         }
-        if it + 1 == settings.max_iterations {
+        if it + 1 == settings.max_iterations || stop() {
             report.capped = true;
             break;
         }

@@ -100,8 +100,9 @@ pub struct LcpReport {
     pub iterations: usize,
     /// Subspace steps kept ([`LcpSolver::Subspace`]).
     pub subspace_steps: usize,
-    /// Whether the solve stopped at [`LcpSettings::max_iterations`] without
-    /// meeting any of its tolerances.
+    /// Whether the solve stopped at [`LcpSettings::max_iterations`] (or where
+    /// the caller of [`super::solve_until`] stopped it) without meeting any
+    /// of its tolerances.
     pub capped: bool,
     /// Relative natural-map residual of the answer ([`residual`]), dimensionless.
     pub residual: f64,
