@@ -2,7 +2,7 @@
 //! 1 kHz, against the same scene without haptics.
 //!
 //! ```text
-//! cargo run --release --example haptics -- --seconds 10 [--coarse]
+//! cargo run --release --example haptics -- --seconds 10 [--coarse] [--repeats N]
 //! ```
 //!
 //! The device's hand follows the scripted extraction on the scene's clock
@@ -12,14 +12,30 @@
 //! jitter, the LCP sweeps per tick, force continuity (the largest jump
 //! between ticks, within a step and across steps) and the scene's steps/s
 //! with and without haptics.
+//!
+//! Each repeat runs three scenes one after the other: without haptics (the
+//! vectis on the script), with haptics, and a replay without haptics of the
+//! poses the haptic run gave the vectis. The first pair is the comparison
+//! the scene's user sees; the second has the same tool motion (so nearly the
+//! same contacts) on both sides, and so isolates what the haptic thread costs
+//! the stepping threads. With `--repeats N` the summary gives each ratio's
+//! range and median over the repeats. With the default `Async`
+//! preconditioner the trajectory depends on when background factors arrive,
+//! so runs with the same tool motion differ in their contacts and the jam's
+//! length, and so in steps/s; `--lag N` (`AsyncLagged`) makes it independent
+//! of thread timing, and the replay then repeats the haptic run step for
+//! step (the distance between their last states is printed: 0 when they
+//! agree to the bit).
 
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Instant;
 
 use bevy_soft_tissue::core_prelude::*;
-use bevy_soft_tissue::haptics::{HapticLoop, HapticSettings, SimulatedDevice, SimulatedHand};
-use bevy_soft_tissue::scenes::cataract::{self, CataractParams};
+use bevy_soft_tissue::haptics::{
+    HapticLoop, HapticSettings, HapticStats, SimulatedDevice, SimulatedHand,
+};
+use bevy_soft_tissue::scenes::cataract::{self, CataractParams, ExtractionPath};
 use clap::Parser;
 
 #[derive(Parser)]
@@ -31,6 +47,20 @@ struct Args {
     /// The coarse scene (fewer elements).
     #[arg(long)]
     coarse: bool,
+    /// Repeats of the three runs (without, with haptics, replay), alternating.
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..))]
+    repeats: u32,
+    /// Factor the bodies' matrices in the background but use each factor
+    /// exactly N steps after it was asked for (`AsyncLagged`) instead of
+    /// when it is ready (`Async`, the default): the scene's trajectory then
+    /// no longer depends on thread timing, and the replay repeats the haptic
+    /// run step for step.
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..))]
+    lag: Option<u32>,
+    /// The haptic LCP's time budget per tick, milliseconds (default: that of
+    /// `HapticSettings::default()`).
+    #[arg(long)]
+    budget_ms: Option<f64>,
 }
 
 const H: f64 = 1.0 / 60.0;
@@ -41,8 +71,31 @@ struct Run {
     max_contacts: usize,
 }
 
-fn scene(params: &CataractParams) -> Result<(Scene, cataract::ExtractionPath)> {
-    let built = cataract::build(params, BodySettings::default())?;
+impl Run {
+    fn rate(&self) -> f64 {
+        self.steps as f64 / self.wall
+    }
+}
+
+struct HapticRun {
+    run: Run,
+    stats: HapticStats,
+    max_force: f64,
+    max_lag: f64,
+    /// The vectis pose of each step (the coupled pose), for the replay.
+    poses: Vec<Pose>,
+    /// Each body's node positions after the last step.
+    last_positions: Vec<Vec<Vec3>>,
+}
+
+/// The cataract scene and the vectis's scripted path.
+struct Setup<'a> {
+    params: &'a CataractParams,
+    settings: BodySettings,
+}
+
+fn scene(setup: &Setup) -> Result<(Scene, ExtractionPath)> {
+    let built = cataract::build(setup.params, setup.settings)?;
     let mut scene = Scene::new(built.contact)?;
     scene.add_body(built.lens);
     scene.add_body(built.eye);
@@ -50,19 +103,19 @@ fn scene(params: &CataractParams) -> Result<(Scene, cataract::ExtractionPath)> {
     Ok((scene, built.path))
 }
 
-/// Steps the scene for `seconds` of scene time; `before` sets the vectis,
-/// `after` sees the stepped scene.
+/// Steps the scene for `seconds` of scene time; `before` sets the vectis
+/// for step `i` at time `t`, `after` sees the stepped scene.
 fn run(
     scene: &mut Scene,
     seconds: f64,
-    mut before: impl FnMut(&mut Scene, f64) -> Result<()>,
+    mut before: impl FnMut(&mut Scene, usize, f64) -> Result<()>,
     mut after: impl FnMut(&Scene),
 ) -> Result<Run> {
     let n = (seconds / H).round() as usize;
     let t0 = Instant::now();
     let mut max_contacts = 0;
     for i in 0..n {
-        before(scene, i as f64 * H)?;
+        before(scene, i, i as f64 * H)?;
         scene.step(H)?;
         max_contacts = max_contacts.max(scene.contact.report().contacts);
         after(scene);
@@ -85,35 +138,41 @@ fn main() -> std::process::ExitCode {
     }
 }
 
-fn go(args: &Args) -> Result<()> {
-    let params = if args.coarse {
-        CataractParams::coarse()
-    } else {
-        CataractParams::default()
-    };
-    println!(
-        "cataract scene, {} s of scene time per run, h = 1/60 s",
-        args.seconds
-    );
-
-    // Without haptics: the vectis follows the script.
-    let (mut plain, path) = scene(&params)?;
-    let p2 = path.clone();
-    let base = run(
+/// Without haptics: the vectis follows the script.
+fn plain_run(setup: &Setup, seconds: f64) -> Result<Run> {
+    let (mut plain, path) = scene(setup)?;
+    run(
         &mut plain,
-        args.seconds,
-        |s, t| s.tools[0].set_pose(p2.pose(t + H)),
+        seconds,
+        |s, _, t| s.tools[0].set_pose(path.pose(t + H)),
+        |_| {},
+    )
+}
+
+/// Without haptics, the vectis at the poses a haptic run gave it; also
+/// the largest distance of a node from where the haptic run left it.
+fn replay_run(setup: &Setup, h: &HapticRun) -> Result<(Run, f64)> {
+    let (mut replay, _) = scene(setup)?;
+    let run = run(
+        &mut replay,
+        h.poses.len() as f64 * H,
+        |s, i, _| s.tools[0].set_pose(h.poses[i]),
         |_| {},
     )?;
-    let base_rate = base.steps as f64 / base.wall;
-    println!(
-        "without haptics: {} steps in {:.2} s = {:.1} steps/s (up to {} contacts)",
-        base.steps, base.wall, base_rate, base.max_contacts
-    );
+    let apart = replay
+        .bodies
+        .iter()
+        .zip(&h.last_positions)
+        .flat_map(|(b, last)| b.positions().iter().zip(last))
+        .map(|(a, b)| (a - b).norm())
+        .fold(0.0, f64::max);
+    Ok((run, apart))
+}
 
-    // With haptics: the hand follows the script on the scene's clock,
-    // interpolated between steps by the wall clock (at most one step).
-    let (mut haptic_scene, _) = scene(&params)?;
+/// With haptics: the hand follows the script on the scene's clock,
+/// interpolated between steps by the wall clock (at most one step).
+fn haptic_run(setup: &Setup, seconds: f64, budget_ms: Option<f64>) -> Result<HapticRun> {
+    let (mut haptic_scene, path) = scene(setup)?;
     haptic_scene.contact.capture_tool(Some(0));
     let clock = Arc::new(AtomicU64::new(0f64.to_bits()));
     let wall_at_step = Arc::new(AtomicU64::new(0f64.to_bits()));
@@ -130,49 +189,98 @@ fn go(args: &Args) -> Result<()> {
         damping: 0.7 * 2.0 * (2000.0f64 * 0.2).sqrt(),
     };
     let device = SimulatedDevice::scripted(script).with_hand(hand)?;
-    let settings = HapticSettings::default();
+    let mut settings = HapticSettings::default();
+    if let Some(ms) = budget_ms {
+        settings.budget = ms * 1e-3;
+    }
     let haptics = std::cell::RefCell::new(HapticLoop::start(device, settings)?);
     let start = Instant::now();
     let mut max_force: f64 = 0.0;
     let mut max_lag: f64 = 0.0;
+    let mut poses = Vec::with_capacity((seconds / H).round() as usize);
     let with = run(
         &mut haptic_scene,
-        args.seconds,
-        |s, t| {
+        seconds,
+        |s, _, t| {
             clock.store((t + H).to_bits(), Ordering::Release);
             wall_at_step.store(start.elapsed().as_secs_f64().to_bits(), Ordering::Release);
             let state = *haptics.borrow_mut().poll();
-            if state.stats.ticks > 0 {
-                s.tools[0].set_pose(state.proxy)?;
+            let pose = if state.stats.ticks > 0 {
                 max_force = max_force.max(state.force.norm());
                 let aim = path.pose(t + H).translation.vector;
                 max_lag = max_lag.max((state.proxy.translation.vector - aim).norm());
+                state.proxy
             } else {
-                s.tools[0].set_pose(path.pose(t + H))?;
-            }
-            Ok(())
+                path.pose(t + H)
+            };
+            poses.push(pose);
+            s.tools[0].set_pose(pose)
         },
         |s| haptics.borrow().publish(s.contact.tool_problem()),
     )?;
     let mut haptics = haptics.into_inner();
     let state = *haptics.poll();
     haptics.stop()?;
-    let st = state.stats;
-    let rate = with.steps as f64 / with.wall;
+    Ok(HapticRun {
+        run: with,
+        stats: state.stats,
+        max_force,
+        max_lag,
+        poses,
+        last_positions: haptic_scene
+            .bodies
+            .iter()
+            .map(|b| b.positions().to_vec())
+            .collect(),
+    })
+}
+
+fn slowdown(with: &Run, without: &Run) -> f64 {
+    100.0 * (1.0 - with.rate() / without.rate())
+}
+
+fn report(base: &Run, h: &HapticRun, replay: &Run, apart: f64) {
+    let st = &h.stats;
+    println!(
+        "without haptics: {} steps in {:.2} s = {:.1} steps/s (up to {} contacts)",
+        base.steps,
+        base.wall,
+        base.rate(),
+        base.max_contacts
+    );
     println!(
         "with haptics:    {} steps in {:.2} s = {:.1} steps/s (up to {} contacts)",
-        with.steps, with.wall, rate, with.max_contacts
+        h.run.steps,
+        h.run.wall,
+        h.run.rate(),
+        h.run.max_contacts
     );
     println!(
-        "  scene slowdown: {:.1} % (target ≤ 10 %)",
-        100.0 * (1.0 - rate / base_rate)
+        "replay:          {} steps in {:.2} s = {:.1} steps/s (up to {} contacts; \
+         the haptic run's vectis poses, no haptic thread)",
+        replay.steps,
+        replay.wall,
+        replay.rate(),
+        replay.max_contacts
     );
     println!(
-        "  haptic rate: {:.0} Hz over the run ({} ticks in {:.2} s; {:.0} Hz over the last 100 ticks)",
+        "  the replay ends {:.3e} m from the haptic run's last state (largest node distance)",
+        apart
+    );
+    println!(
+        "  scene slowdown: {:.1} % against the scripted run (target ≤ 10 %), \
+         {:.1} % against the replay",
+        slowdown(&h.run, base),
+        slowdown(&h.run, replay)
+    );
+    println!(
+        "  haptic rate: {:.0} Hz over the run ({} ticks in {:.2} s; {:.0} Hz over the last 100 ticks); \
+         the loop's work took {:.1} % of a core",
         st.ticks as f64 / st.elapsed.max(1e-9),
         st.ticks,
         st.elapsed,
-        st.rate_hz
+        st.rate_hz,
+        100.0 * st.busy / st.elapsed.max(1e-9)
     );
     println!(
         "  tick work: p99 {:.3} ms over the run (target < 0.8 ms); last 1000 ticks p50 {:.3} ms, \
@@ -193,12 +301,77 @@ fn go(args: &Args) -> Result<()> {
     );
     println!(
         "  force: largest {:.4} N; largest jump between ticks {:.2e} N within a step, {:.2e} N across steps",
-        max_force, st.max_jump_between_steps, st.max_jump_at_step
+        h.max_force, st.max_jump_between_steps, st.max_jump_at_step
     );
     println!(
         "  problems received {}; proxy's largest distance from the script {:.3} mm",
         st.problems,
-        max_lag * 1e3
+        h.max_lag * 1e3
     );
+}
+
+/// "min–max, median m" of `v`.
+fn spread(v: &mut [f64], digits: usize) -> String {
+    v.sort_by(f64::total_cmp);
+    let n = v.len();
+    let median = if n % 2 == 1 {
+        v[n / 2]
+    } else {
+        0.5 * (v[n / 2 - 1] + v[n / 2])
+    };
+    format!(
+        "{:.d$} to {:.d$}, median {:.d$}",
+        v[0],
+        v[n - 1],
+        median,
+        d = digits
+    )
+}
+
+fn go(args: &Args) -> Result<()> {
+    let params = if args.coarse {
+        CataractParams::coarse()
+    } else {
+        CataractParams::default()
+    };
+    let mut settings = BodySettings::default();
+    if let Some(lag) = args.lag {
+        settings.preconditioner = PreconditionerKind::AsyncLagged { lag };
+    }
+    let setup = Setup {
+        params: &params,
+        settings,
+    };
+    println!(
+        "cataract scene, {} s of scene time per run, h = 1/60 s, {} repeat(s), preconditioner {:?}",
+        args.seconds, args.repeats, settings.preconditioner
+    );
+    let (mut vs_script, mut vs_replay, mut rates, mut p99s) = (vec![], vec![], vec![], vec![]);
+    for k in 0..args.repeats {
+        if args.repeats > 1 {
+            println!("\n--- repeat {} of {}", k + 1, args.repeats);
+        }
+        let base = plain_run(&setup, args.seconds)?;
+        let h = haptic_run(&setup, args.seconds, args.budget_ms)?;
+        let (replay, apart) = replay_run(&setup, &h)?;
+        report(&base, &h, &replay, apart);
+        vs_script.push(slowdown(&h.run, &base));
+        vs_replay.push(slowdown(&h.run, &replay));
+        rates.push(h.stats.ticks as f64 / h.stats.elapsed.max(1e-9));
+        p99s.push(h.stats.run_tick_p99 * 1e3);
+    }
+    if args.repeats > 1 {
+        println!("\nover {} repeats:", args.repeats);
+        println!("  haptic rate {} Hz", spread(&mut rates, 1));
+        println!("  tick work p99 {} ms", spread(&mut p99s, 3));
+        println!(
+            "  scene slowdown against the scripted run {} %",
+            spread(&mut vs_script, 1)
+        );
+        println!(
+            "  scene slowdown against the replay {} %",
+            spread(&mut vs_replay, 1)
+        );
+    }
     Ok(())
 }
