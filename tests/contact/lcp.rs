@@ -268,38 +268,23 @@ fn solve_until_stops_where_told_and_is_solve_otherwise() {
     for (name, p) in shipped() {
         let set = settings(LcpSolver::BlockGaussSeidel, 1e-6, 1000);
         let (lambda, delta, rep) = p.solve(&set).unwrap();
-        let mut scratch = lcp::LcpScratch::default();
-        let mut l = p.lambda0.clone();
-        let r = lcp::solve_until(
-            &p.w,
-            &p.delta0,
-            &p.rows,
-            &p.mu,
-            &mut l,
-            &set,
-            &mut scratch,
-            || false,
-        );
+        // Solves from the start, stopped by the caller after `stop_at` sweeps (0: never).
+        let until = |l: &mut Vec<f64>, scratch: &mut lcp::LcpScratch, stop_at: usize| {
+            *l = p.lambda0.clone();
+            let mut sweeps = 0;
+            lcp::solve_until(&p.w, &p.delta0, &p.rows, &p.mu, l, &set, scratch, || {
+                sweeps += 1;
+                sweeps == stop_at
+            })
+        };
+        let (mut l, mut scratch) = (Vec::new(), lcp::LcpScratch::default());
+        let r = until(&mut l, &mut scratch, 0);
         assert_eq!(l, lambda, "{name}");
         assert_eq!(scratch.delta(), &delta[..], "{name}");
         assert_eq!(r.iterations, rep.iterations, "{name}");
         assert!(rep.iterations > 3, "{name}: {rep:?}");
 
-        let mut l = p.lambda0.clone();
-        let mut sweeps = 0;
-        let r = lcp::solve_until(
-            &p.w,
-            &p.delta0,
-            &p.rows,
-            &p.mu,
-            &mut l,
-            &set,
-            &mut scratch,
-            || {
-                sweeps += 1;
-                sweeps == 3
-            },
-        );
+        let r = until(&mut l, &mut scratch, 3);
         assert_eq!(r.iterations, 3, "{name}");
         assert!(r.capped && r.residual > 1e-6, "{name}: {r:?}");
         let mut d = vec![0.0; p.m()];
