@@ -9,7 +9,7 @@
 //! one second more, 1080, or 540 with `--push-only`), `--push-only` (the vectis
 //! stops with the lens pressed into the slit instead of delivering it out of
 //! the eye, `CataractParams::push_only`), `--coarse`
-//! (light meshes), `--preconditioner jacobi|exact|periodicN|async|lagN`
+//! (light meshes), `--preconditioner none|jacobi|exact|periodicN|async|lagN`
 //! (`lagN`: `AsyncLagged`, the factor arrives exactly N steps later),
 //! `--compliance factorized|exact|diagonal|rest|dense`, `--reuse N` (steps a
 //! factor serves the compliance, `ContactSettings::factor_reuse`), `--passes N`
@@ -77,9 +77,9 @@ struct Args {
     /// delivering it out of the eye.
     #[arg(long)]
     push_only: bool,
-    /// jacobi, exact, periodicN, async, or lagN (the factor arrives exactly
-    /// N steps after it was requested).
-    #[arg(long, default_value = "async", value_parser = preconditioner)]
+    /// none, jacobi, exact, periodicN, async, or lagN (the factor arrives
+    /// exactly N steps after it was requested).
+    #[arg(long, default_value = "async", value_parser = common::args::preconditioner)]
     preconditioner: PreconditionerKind,
     /// factorized, exact, diagonal, rest or dense.
     #[arg(long, default_value = "factorized", value_parser = compliance)]
@@ -115,22 +115,6 @@ struct Args {
     /// A simulated haptic device drives the vectis (window only).
     #[arg(long)]
     haptics: bool,
-}
-
-fn preconditioner(v: &str) -> Result<PreconditionerKind, String> {
-    let whole = |s: &str| s.parse().map_err(|_| format!("bad preconditioner `{v}`"));
-    Ok(match v {
-        "jacobi" => PreconditionerKind::Jacobi,
-        "exact" => PreconditionerKind::Exact,
-        "async" => PreconditionerKind::Async,
-        p if p.starts_with("lag") => PreconditionerKind::AsyncLagged {
-            lag: whole(&p[3..])?,
-        },
-        p if p.starts_with("periodic") => PreconditionerKind::Periodic {
-            every: whole(&p[8..])?,
-        },
-        _ => return Err(format!("unknown preconditioner `{v}`")),
-    })
 }
 
 fn compliance(v: &str) -> Result<ComplianceMode, String> {

@@ -34,23 +34,9 @@ struct Args {
     /// Steps per preconditioner.
     #[arg(long, default_value_t = 200)]
     steps: usize,
-    /// none, jacobi, exact, periodicN or async (default: a set of them).
-    #[arg(long, value_parser = parse_kind)]
+    /// none, jacobi, exact, periodicN, async or lagN (default: a set of them).
+    #[arg(long, value_parser = common::args::preconditioner)]
     preconditioner: Option<PreconditionerKind>,
-}
-
-fn parse_kind(s: &str) -> std::result::Result<PreconditionerKind, String> {
-    let bad = || format!("unknown preconditioner `{s}`");
-    Ok(match s {
-        "none" => PreconditionerKind::None,
-        "jacobi" => PreconditionerKind::Jacobi,
-        "exact" => PreconditionerKind::Exact,
-        "async" => PreconditionerKind::Async,
-        p if p.starts_with("periodic") => PreconditionerKind::Periodic {
-            every: p[8..].parse().map_err(|_| bad())?,
-        },
-        _ => return Err(bad()),
-    })
 }
 
 fn run(kind: PreconditionerKind, steps: usize) -> Result<()> {

@@ -187,3 +187,10 @@ pub(crate) fn has_avx2_fma() -> bool {
         false
     }
 }
+
+/// Irregular, reproducible values for the kernels' unit tests: entry `i` of
+/// stream `s`, in `[−13, 14)`.
+#[cfg(test)]
+pub(crate) fn test_value(i: usize, s: usize) -> f64 {
+    (((i + 3) * (s + 7) * 2654435761usize) % 1000) as f64 / 37.0 - 13.0
+}

@@ -2,6 +2,7 @@
 //! `#[path]`; not library API).
 #![allow(dead_code)]
 
+pub mod args;
 pub mod bench;
 #[cfg(feature = "bevy")]
 pub mod headless;

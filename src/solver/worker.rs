@@ -1,7 +1,7 @@
 //! The background `LDLᵀ` worker of the `Async` preconditioner (see the
 //! module docs of [`super`], "Asynchronous refresh").
 
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::thread::JoinHandle;
 use std::time::Instant;
@@ -54,7 +54,7 @@ static WAITING: std::sync::Mutex<std::collections::VecDeque<(u64, Instant)>> =
 /// it must not hold up the bodies behind it. It queues again when it asks.
 const WAITING_STALE: std::time::Duration = std::time::Duration::from_millis(250);
 /// Identity of each [`AsyncFactorizer`] in [`WAITING`].
-static NEXT_ID: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+static NEXT_ID: AtomicU64 = AtomicU64::new(0);
 
 /// How many background factorizations may run at once: one core is left to the
 /// stepping thread (at least one worker). Asked of the OS once.
@@ -80,7 +80,7 @@ pub struct AsyncFactorizer {
     /// Test hook: the thread exits at its next job.
     stop: Arc<AtomicBool>,
     /// Test hook: microseconds each job waits before it factorizes.
-    delay: Arc<std::sync::atomic::AtomicU64>,
+    delay: Arc<AtomicU64>,
     in_flight: bool,
     submitted_step: u64,
     pub(super) spare: Option<(Vec<Mat3>, Vec<Mat3>, LdltFactor)>,
@@ -108,7 +108,7 @@ impl AsyncFactorizer {
         let fail_w = Arc::clone(&fail);
         let stop = Arc::new(AtomicBool::new(false));
         let stop_w = Arc::clone(&stop);
-        let delay = Arc::new(std::sync::atomic::AtomicU64::new(0));
+        let delay = Arc::new(AtomicU64::new(0));
         let delay_w = Arc::clone(&delay);
         let handle = std::thread::Builder::new()
             .name("soft-tissue-ldlt".into())
@@ -281,8 +281,9 @@ impl AsyncFactorizer {
         // Without `queue` (`AsyncLagged`, whose factor must be of the step it
         // was asked at, whatever the other bodies do) the job goes out now and
         // only counts towards the others' limit.
+        // (A factorizer never changes kind: a body that switches gets a new
+        // one, and the old one leaves the queue when dropped.)
         if !queue {
-            lock(&WAITING).retain(|&(w, _)| w != self.id);
             IN_FLIGHT.fetch_add(1, Ordering::SeqCst);
         } else {
             let limit = max_in_flight();

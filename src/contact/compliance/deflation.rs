@@ -319,9 +319,7 @@ mod tests {
     /// what it replaced, for every remainder length.
     #[test]
     fn rank12_row_matches_the_vector6_dot_products() {
-        let val = |i: usize, s: usize| {
-            (((i + 3) * (s + 7) * 2654435761usize) % 1000) as f64 / 37.0 - 13.0
-        };
+        let val = crate::math::test_value;
         let a = Vector6::from_fn(|c, _| val(c, 1));
         let b = Vector6::from_fn(|c, _| val(c, 2));
         for k in 0..13 {

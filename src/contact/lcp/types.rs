@@ -286,9 +286,7 @@ mod tests {
     /// portable loops' results to the bit, for every remainder length.
     #[test]
     fn dense_kernels_agree_to_the_bit_with_the_portable_loops() {
-        let val = |i: usize, s: usize| {
-            (((i + 3) * (s + 7) * 2654435761usize) % 1000) as f64 / 37.0 - 13.0
-        };
+        let val = crate::math::test_value;
         for n in 0..23 {
             let x: Vec<f64> = (0..n).map(|i| val(i, 1)).collect();
             let y: Vec<f64> = (0..n).map(|i| val(i, 2)).collect();

@@ -1,0 +1,22 @@
+//! Command-line values shared by the examples (parsers for clap).
+
+use bevy_soft_tissue::solver::PreconditionerKind;
+
+/// `none`, `jacobi`, `exact`, `async`, `lagN` (`AsyncLagged`: the factor
+/// arrives exactly N steps after it was requested) or `periodicN`.
+pub fn preconditioner(v: &str) -> Result<PreconditionerKind, String> {
+    let whole = |s: &str| s.parse().map_err(|_| format!("bad preconditioner `{v}`"));
+    Ok(match v {
+        "none" => PreconditionerKind::None,
+        "jacobi" => PreconditionerKind::Jacobi,
+        "exact" => PreconditionerKind::Exact,
+        "async" => PreconditionerKind::Async,
+        p if p.starts_with("lag") => PreconditionerKind::AsyncLagged {
+            lag: whole(&p[3..])?,
+        },
+        p if p.starts_with("periodic") => PreconditionerKind::Periodic {
+            every: whole(&p[8..])?,
+        },
+        _ => return Err(format!("unknown preconditioner `{v}`")),
+    })
+}
