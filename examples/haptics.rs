@@ -41,8 +41,8 @@ use clap::Parser;
 #[derive(Parser)]
 #[command(about = "Haptic loop at 1 kHz on the cataract scene")]
 struct Args {
-    /// Scene time to simulate in each run, seconds.
-    #[arg(long, default_value_t = 10.0)]
+    /// Scene time to simulate in each run, seconds (at least one step).
+    #[arg(long, default_value_t = 10.0, value_parser = seconds)]
     seconds: f64,
     /// The coarse scene (fewer elements).
     #[arg(long)]
@@ -64,6 +64,16 @@ struct Args {
 }
 
 const H: f64 = 1.0 / 60.0;
+
+/// A run's scene time: finite, and at least one step.
+fn seconds(v: &str) -> std::result::Result<f64, String> {
+    match v.parse::<f64>() {
+        Ok(s) if s.is_finite() && s >= H => Ok(s),
+        _ => Err(format!(
+            "`{v}` is not a time of at least one step ({H:.4} s)"
+        )),
+    }
+}
 
 struct Run {
     steps: usize,
