@@ -9,6 +9,7 @@ use bevy_soft_tissue::fem::assembly::{BlockCsr, BlockPattern};
 use bevy_soft_tissue::math::polar_rotation;
 use bevy_soft_tissue::mesh::generate::{EyeShell, Incision, LENS_RADII};
 use bevy_soft_tissue::solver::ldlt::LdltSymbolic;
+use bevy_soft_tissue::solver::ordering::{self, Ordering as FillOrdering};
 #[path = "../examples/common/mod.rs"]
 mod common;
 

@@ -6,8 +6,9 @@
 //! 3×3 diagonal block and three pivots of `D`.
 //!
 //! - **Symbolic analysis** ([`LdltSymbolic::new`], once per mesh):
-//!   approximate minimum degree ordering of the node graph (faer's AMD), the
-//!   elimination tree, the column structure of `L`, and for every row the
+//!   fill-reducing ordering of the node graph (the cheaper of faer's
+//!   approximate minimum degree and a nested dissection, see
+//!   [`super::ordering`]), the elimination tree, the column structure of `L`, and for every row the
 //!   topologically ordered reach with the storage slot each entry fills.
 //! - **Numeric factorization** ([`LdltSymbolic::factorize`]): up-looking
 //!   block `LDLᵀ`, allocation-free into a recycled [`LdltFactor`]. A
@@ -20,9 +21,7 @@
 
 use std::sync::Arc;
 
-use faer::dyn_stack::{MemBuffer, MemStack};
-use faer::sparse::SymbolicSparseColMatRef;
-use faer::sparse::linalg::amd;
+use super::ordering::{Ordering, Permutation};
 
 use crate::error::{Result, SoftTissueError};
 use crate::fem::assembly::{BlockCsr, BlockPattern};
@@ -75,34 +74,16 @@ pub struct LdltFactor {
 }
 
 impl LdltSymbolic {
-    /// Analyses `pattern`: AMD ordering, elimination tree and structure of `L`.
+    /// Analyses `pattern`: fill-reducing ordering ([`Ordering::Auto`]),
+    /// elimination tree and structure of `L`.
     pub fn new(pattern: &BlockPattern) -> Result<Self> {
+        Self::with_ordering(pattern, Ordering::Auto)
+    }
+
+    /// [`Self::new`] with the given ordering.
+    pub fn with_ordering(pattern: &BlockPattern, ordering: Ordering) -> Result<Self> {
         let n = pattern.n;
-        // Fill-reducing ordering of the node graph.
-        let mut perm = vec![0usize; n];
-        let mut iperm = vec![0usize; n];
-        if n > 0 {
-            let sym = SymbolicSparseColMatRef::new_checked(
-                n,
-                n,
-                &pattern.row_ptr,
-                None,
-                &pattern.col_idx,
-            );
-            let mut mem = MemBuffer::new(amd::order_scratch::<usize>(n, pattern.nnz()));
-            amd::order(
-                &mut perm,
-                &mut iperm,
-                sym,
-                amd::Control::default(),
-                MemStack::new(&mut mem),
-            )
-            .map_err(|_| SoftTissueError::TooLarge {
-                what: "AMD ordering",
-                size: n,
-                limit: u32::MAX as usize,
-            })?;
-        }
+        let Permutation { perm, iperm } = super::ordering::order(pattern, ordering)?;
         // Lower entries of A per permuted row.
         let mut a_ptr = vec![0usize; n + 1];
         let mut a_entries = Vec::with_capacity(pattern.nnz() / 2);

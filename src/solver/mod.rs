@@ -77,6 +77,7 @@
 pub mod cg;
 pub mod columns;
 pub mod ldlt;
+pub mod ordering;
 mod worker;
 
 use std::sync::Arc;

@@ -243,21 +243,34 @@ fn hard_case_stays_stable() {
 
 #[test]
 fn ldlt_solves_and_node_columns_match_dense() {
-    let mesh = generate::ellipsoid([1.0, 0.8, 0.6], 5).unwrap();
-    let mut body = DeformableBody::new(
-        mesh,
-        TissueMaterial::new(1000.0, 1e4, 0.3),
-        BodySettings {
-            preconditioner: PreconditionerKind::Exact,
-            ..Default::default()
-        },
-    )
-    .unwrap();
-    body.fix_nodes(&[0]).unwrap();
-    body.step(0.01).unwrap();
-    let a = body.system_matrix();
-    let st = body.preconditioner().factor_state().unwrap();
-    let f = &st.factor;
+    // Cells 5: AMD's size; cells 10 (726 nodes): split by nested dissection.
+    for cells in [5, 10] {
+        let mesh = generate::ellipsoid([1.0, 0.8, 0.6], cells).unwrap();
+        let mut body = DeformableBody::new(
+            mesh,
+            TissueMaterial::new(1000.0, 1e4, 0.3),
+            BodySettings {
+                preconditioner: PreconditionerKind::Exact,
+                ..Default::default()
+            },
+        )
+        .unwrap();
+        body.fix_nodes(&[0]).unwrap();
+        body.step(0.01).unwrap();
+        let a = body.system_matrix();
+        check_factor(a, &body.preconditioner().factor_state().unwrap().factor);
+        for ordering in [FillOrdering::Amd, FillOrdering::NestedDissection] {
+            let sym = Arc::new(LdltSymbolic::with_ordering(&a.pattern, ordering).unwrap());
+            let mut f = sym.alloc_factor();
+            sym.factorize(a, &mut f, &mut Vec::new()).unwrap();
+            check_factor(a, &f);
+        }
+    }
+}
+
+/// `f` solves `a` to round-off, and its node columns are the dense forward
+/// solves of unit vectors, nonzero only on the elimination-tree path.
+fn check_factor(a: &BlockCsr, f: &bevy_soft_tissue::solver::ldlt::LdltFactor) {
     let n = a.n();
     let b: Vec<Vec3> = (0..n)
         .map(|i| v3(i as f64, 1.0, -(i as f64).sin()))
@@ -299,6 +312,104 @@ fn ldlt_solves_and_node_columns_match_dense() {
                     None => assert!(yk.norm() == 0.0, "nonzero off the etree path at {k}"),
                 }
             }
+        }
+    }
+}
+
+/// Every ordering is a permutation, its counted cost matches the symbolic
+/// factor, `Auto` keeps the cheaper one, and on a large 3-D mesh nested
+/// dissection needs fewer operations and shorter column paths than minimum
+/// degree (why it exists).
+#[test]
+fn orderings_are_permutations_and_nested_dissection_wins_on_large_meshes() {
+    let is_perm = |p: &ordering::Permutation, n: usize| {
+        let mut seen = vec![false; n];
+        p.perm.len() == n
+            && p.perm
+                .iter()
+                .all(|&o| o < n && !std::mem::replace(&mut seen[o], true))
+            && (0..n).all(|o| p.perm[p.iperm[o]] == o)
+    };
+    let mean_path = |s: &LdltSymbolic| {
+        let mut total = 0usize;
+        for k in 0..s.n {
+            let mut j = k;
+            while j != bevy_soft_tissue::solver::ldlt::NONE {
+                total += 1;
+                j = s.parent[j];
+            }
+        }
+        total as f64 / s.n as f64
+    };
+    let mesh = generate::ellipsoid(LENS_RADII, 20).unwrap();
+    let pattern = BlockPattern::new(mesh.num_vertices(), mesh.tets());
+    let n = pattern.n;
+    let mut cost = Vec::new();
+    for which in [
+        FillOrdering::Amd,
+        FillOrdering::NestedDissection,
+        FillOrdering::Auto,
+    ] {
+        let p = ordering::order(&pattern, which).unwrap();
+        assert!(is_perm(&p, n), "{which:?} is not a permutation");
+        let (nnz, flops) = ordering::factor_cost(&pattern, &p);
+        let sym = LdltSymbolic::with_ordering(&pattern, which).unwrap();
+        assert_eq!(sym.perm, p.perm);
+        assert_eq!(nnz, sym.nnz_blocks(), "{which:?}: counted nnz(L)");
+        cost.push((flops, mean_path(&sym)));
+    }
+    let (amd, nd, auto) = (cost[0], cost[1], cost[2]);
+    assert!(nd.0 < amd.0, "nested dissection {nd:?} against AMD {amd:?}");
+    assert!(nd.1 < amd.1, "nested dissection {nd:?} against AMD {amd:?}");
+    assert_eq!(auto.0, amd.0.min(nd.0));
+}
+
+/// Nested dissection of graphs it must split into components: two separate
+/// meshes and isolated nodes, and the degenerate sizes.
+#[test]
+fn nested_dissection_handles_disconnected_and_tiny_graphs() {
+    let a = generate::ellipsoid(LENS_RADII, 8).unwrap();
+    let na = a.num_vertices();
+    let mut tets: Vec<[usize; 4]> = a.tets().to_vec();
+    tets.extend(a.tets().iter().map(|t| t.map(|i| i + na)));
+    // 2 meshes and 150 isolated nodes after them.
+    for n in [0, 1, 2 * na + 150] {
+        let tets: Vec<[usize; 4]> = if n == 0 || n == 1 {
+            Vec::new()
+        } else {
+            tets.clone()
+        };
+        let pattern = Arc::new(BlockPattern::new(n, &tets));
+        let p = ordering::nested_dissection(&pattern).unwrap();
+        let mut seen = vec![false; n];
+        for &o in &p.perm {
+            assert!(!std::mem::replace(&mut seen[o], true), "node {o} twice");
+        }
+        assert_eq!(p.perm.len(), n);
+        if n > 1 {
+            // Factorize a positive definite matrix of that pattern.
+            let mut m = BlockCsr::zeros(pattern.clone());
+            // Diagonally dominant: the row's size on the diagonal, -1 off it.
+            for i in 0..n {
+                let row = (pattern.row_ptr[i + 1] - pattern.row_ptr[i]) as f64;
+                m.values[pattern.diag[i]] = Mat3::identity() * row;
+            }
+            for t in &tets {
+                for &r in t {
+                    for &c in t {
+                        if r != c {
+                            let s = pattern.slot(r, c).unwrap();
+                            m.values[s] = Mat3::identity() * -1.0;
+                        }
+                    }
+                }
+            }
+            let sym = Arc::new(
+                LdltSymbolic::with_ordering(&pattern, FillOrdering::NestedDissection).unwrap(),
+            );
+            let mut f = sym.alloc_factor();
+            sym.factorize(&m, &mut f, &mut Vec::new()).unwrap();
+            check_factor(&m, &f);
         }
     }
 }
