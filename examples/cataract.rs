@@ -203,6 +203,10 @@ fn headless(args: &Args, params: &CataractParams, config: SoftTissueConfig) -> E
                 s.lcp_sweeps.0, s.lcp_sweeps.1, s.lcp_capped
             );
             println!(
+                "compliance on the stepping thread, mean per jam step: {:.1} node columns, {:.0} Gram blocks",
+                s.columns_jam.0, s.columns_jam.1
+            );
+            println!(
                 "factors refreshed by the contact phase's consistency checks: {}",
                 s.consistency_refactors
             );

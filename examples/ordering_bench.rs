@@ -85,7 +85,10 @@ fn main() -> Result<()> {
         let mut body = DeformableBody::new(mesh, material, BodySettings::default())?;
         report(&format!("lens {cells}"), &mut body)?;
     }
-    let mut scene = cataract::build(&cataract::CataractParams::default(), BodySettings::default())?;
+    let mut scene = cataract::build(
+        &cataract::CataractParams::default(),
+        BodySettings::default(),
+    )?;
     report("cataract lens", &mut scene.lens)?;
     report("cataract eye", &mut scene.eye)?;
     Ok(())

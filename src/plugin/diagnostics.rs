@@ -55,6 +55,11 @@ pub struct SoftTissueDiagnostics {
     pub lcp_capped: u64,
     /// Contact passes run.
     pub contact_passes: usize,
+    /// Node columns (or full solves) the compliance solved on the stepping
+    /// thread this step, all passes ([`crate::contact::ContactReport::solves`]).
+    pub compliance_solves: usize,
+    /// Gram blocks the compliance computed on the stepping thread this step.
+    pub gram_blocks: usize,
     /// Counter: lagging factors refreshed by the contact phase because a
     /// correction strayed from the matrix
     /// ([`crate::contact::ContactReport::consistency_refactors`]).
@@ -103,6 +108,8 @@ impl SoftTissueDiagnostics {
         self.lcp_first_iterations = 0;
         self.lcp_relative_residual = 0.0;
         self.contact_passes = 0;
+        self.compliance_solves = 0;
+        self.gram_blocks = 0;
     }
 
     /// Total step time, ms.
