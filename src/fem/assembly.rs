@@ -121,6 +121,23 @@ impl BlockCsr {
         }
     }
 
+    /// `y_k = A x_k` for `K` vectors at once, interleaved by node
+    /// (`x[i][k]`): one pass over the matrix instead of `K`.
+    pub fn mul_vecs<const K: usize>(&self, x: &[[Vec3; K]], y: &mut [[Vec3; K]]) {
+        let p = &*self.pattern;
+        for (i, yi) in y.iter_mut().enumerate().take(p.n) {
+            let mut acc = [Vec3::zeros(); K];
+            for s in p.row_ptr[i]..p.row_ptr[i + 1] {
+                let a = &self.values[s];
+                let xj = &x[p.col_idx[s]];
+                for k in 0..K {
+                    acc[k] += a * xj[k];
+                }
+            }
+            *yi = acc;
+        }
+    }
+
     /// Diagonal block of row `i`.
     pub fn diag(&self, i: usize) -> &Mat3 {
         &self.values[self.pattern.diag[i]]

@@ -316,6 +316,27 @@ fn check_factor(a: &BlockCsr, f: &bevy_soft_tissue::solver::ldlt::LdltFactor) {
     }
 }
 
+/// `mul_vecs` gives, to the bit, `mul_vec` of each of its vectors.
+#[test]
+fn block_matrix_products_of_several_vectors_match_one_at_a_time() {
+    let mesh = generate::ellipsoid(LENS_RADII, 6).unwrap();
+    let mut body = DeformableBody::new(mesh, lens_material(), BodySettings::default()).unwrap();
+    body.step(0.01).unwrap();
+    let a = body.system_matrix();
+    let n = a.n();
+    let x: Vec<[Vec3; 6]> = (0..n)
+        .map(|i| std::array::from_fn(|k| v3((i + k) as f64, (i * k) as f64 * 0.5, -(k as f64))))
+        .collect();
+    let mut y = vec![[Vec3::zeros(); 6]; n];
+    a.mul_vecs(&x, &mut y);
+    for k in 0..6 {
+        let xk: Vec<Vec3> = x.iter().map(|v| v[k]).collect();
+        let mut yk = vec![Vec3::zeros(); n];
+        a.mul_vec(&xk, &mut yk);
+        assert!(yk.iter().zip(&y).all(|(p, q)| *p == q[k]), "vector {k}");
+    }
+}
+
 /// Every ordering is a permutation, its counted cost matches the symbolic
 /// factor, `Auto` keeps the cheaper one, and on a large 3-D mesh nested
 /// dissection needs fewer operations and shorter column paths than minimum

@@ -43,12 +43,12 @@ pub(super) struct Deflation {
     /// Whether `Zᵀ A Z` was positive definite (no completion otherwise).
     active: bool,
     z: [Vec<Vec3>; 6],
-    /// `A z` of one mode (scratch).
-    az: Vec<Vec3>,
+    /// `Z` and `A Z` interleaved by node.
+    zi: Vec<[Vec3; 6]>,
+    az: Vec<[Vec3; 6]>,
     y: [Vec<Vec3>; 6],
     g: Matrix6<f64>,
     b: Matrix6<f64>,
-    tmp: Vec<Vec3>,
     /// The six right-hand sides `Qᵀ A z`, their solutions and the solve's
     /// scratch, interleaved by node (one solve reads the factor once).
     rhs: Vec<[Vec3; 6]>,
@@ -104,30 +104,38 @@ impl Deflation {
                     .map(|xi| if k < 3 { e } else { e.cross(&(xi - c)) / len }),
             );
         }
-        // A Z, Zᵀ A Z; y = P⁻¹ A Z; S = Zᵀ (A Y). (`(A Z)ᵀ Y` is the same
-        // to round-off and saves six products, but the coarse cataract test
-        // scene's delivery flips on such round-off: kept as measured.)
+        // A Z (one pass over A for the six modes), Zᵀ A Z; y = P⁻¹ A Z;
+        // S = (A Z)ᵀ Y.
         let a = body.system_matrix();
         let f = view.factor;
         let mut zaz = Matrix6::zeros();
         let mut s = Matrix6::zeros();
-        self.tmp.resize(n, Vec3::zeros());
-        for buf in [&mut self.rhs, &mut self.sol, &mut self.work] {
+        for buf in [
+            &mut self.zi,
+            &mut self.az,
+            &mut self.rhs,
+            &mut self.sol,
+            &mut self.work,
+        ] {
             buf.resize(n, [Vec3::zeros(); 6]);
         }
-        for k in 0..6 {
-            let az = &mut self.az;
-            az.resize(n, Vec3::zeros());
-            a.mul_vec(&self.z[k], az);
-            for l in 0..6 {
-                zaz[(l, k)] = dot(&self.z[l], az);
+        for i in 0..n {
+            for k in 0..6 {
+                self.zi[i][k] = self.z[k][i];
             }
-            // y = P⁻¹ (A z) with P⁻¹ = Q (L D Lᵀ)⁻¹ Qᵀ, as the compliance
-            // applies it.
-            for i in 0..n {
+        }
+        a.mul_vecs(&self.zi, &mut self.az);
+        for i in 0..n {
+            let (zi, azi) = (&self.zi[i], &self.az[i]);
+            for k in 0..6 {
+                for l in 0..6 {
+                    zaz[(l, k)] += zi[l].dot(&azi[k]);
+                }
+                // y = P⁻¹ (A z) with P⁻¹ = Q (L D Lᵀ)⁻¹ Qᵀ, as the compliance
+                // applies it.
                 self.rhs[i][k] = match view.warp {
-                    Some(q) => q[i].transpose() * az[i],
-                    None => az[i],
+                    Some(q) => q[i].transpose() * azi[k],
+                    None => azi[k],
                 };
             }
         }
@@ -142,10 +150,13 @@ impl Deflation {
                 };
             }
         }
-        for k in 0..6 {
-            a.mul_vec(&self.y[k], &mut self.tmp);
-            for l in 0..6 {
-                s[(l, k)] = dot(&self.z[l], &self.tmp);
+        for i in 0..n {
+            let azi = &self.az[i];
+            for k in 0..6 {
+                let yk = self.y[k][i];
+                for l in 0..6 {
+                    s[(l, k)] += azi[l].dot(&yk);
+                }
             }
         }
         let zaz = (zaz + zaz.transpose()) * 0.5;
@@ -304,10 +315,6 @@ fn rank12_row_portable(a: &Vector6<f64>, b: &Vector6<f64>, soa: &[f64], out: &mu
             + b[5] * v5[j];
         out[j] += su - sv;
     }
-}
-
-fn dot(a: &[Vec3], b: &[Vec3]) -> f64 {
-    a.iter().zip(b).map(|(x, y)| x.dot(y)).sum()
 }
 
 #[cfg(test)]
