@@ -65,7 +65,9 @@
 //! [`crate::contact::compliance`]); on the stepping thread that cost, per
 //! refresh, 2.5–5 ms for the paper-size lens with 60–90 contacts and about
 //! 20 ms at 260 (`compliance_bench`, "new factor"). The compliance leaves
-//! the nodes of its latest build as a hint; the worker solves their columns
+//! the nodes of its last few builds as a hint ([`columns::HINT_BUILDS`]:
+//! contact sets flicker, and a node out of contact for a step or two often
+//! comes back); the worker solves their columns
 //! and all their Gram blocks right after the factorization, and the factor is
 //! handed over with them. The compliance takes them when it first uses that
 //! factor, and solves on the stepping thread only nodes that came into
