@@ -596,3 +596,49 @@ proptest! {
         }
     }
 }
+
+proptest! {
+    #![proptest_config(seeded(256))]
+
+    /// Nested dissection of random meshes (boxes with tetrahedra dropped, so
+    /// parts fall apart, and isolated nodes after them) is a permutation, and
+    /// the symbolic factor built on it has the nonzeros its cost count says.
+    #[test]
+    fn nested_dissection_of_random_meshes_is_a_permutation(
+        cells in (1usize..7, 1usize..7, 1usize..7),
+        keep in 0.3f64..1.0,
+        seed in any::<u64>(),
+        isolated in 0usize..80,
+    ) {
+        let mesh = generate::box_mesh(
+            v3(0.0, 0.0, 0.0),
+            v3(1.0, 1.0, 1.0),
+            [cells.0, cells.1, cells.2],
+        )
+        .unwrap();
+        // Drop tetrahedra by a hash of their index and the seed.
+        let tets: Vec<[usize; 4]> = mesh
+            .tets()
+            .iter()
+            .enumerate()
+            .filter(|(i, _)| {
+                let h = (*i as u64 ^ seed).wrapping_mul(0x9E37_79B9_7F4A_7C15);
+                ((h >> 11) as f64 / (1u64 << 53) as f64) < keep
+            })
+            .map(|(_, t)| *t)
+            .collect();
+        let n = mesh.num_vertices() + isolated;
+        let pattern = BlockPattern::new(n, &tets);
+        let p = ordering::nested_dissection(&pattern).unwrap();
+        let mut seen = vec![false; n];
+        for &o in &p.perm {
+            prop_assert!(o < n && !std::mem::replace(&mut seen[o], true));
+        }
+        prop_assert_eq!(p.perm.len(), n);
+        for o in 0..n {
+            prop_assert_eq!(p.perm[p.iperm[o]], o);
+        }
+        let sym = LdltSymbolic::with_ordering(&pattern, FillOrdering::NestedDissection).unwrap();
+        prop_assert_eq!(ordering::factor_cost(&pattern, &p).0, sym.nnz_blocks());
+    }
+}
