@@ -303,6 +303,27 @@ impl ColumnCache {
         }
     }
 
+    /// Asks the CPU to fetch the cached Gram block of columns `a` and `b`
+    /// (a hint only: [`Self::gram`] reads it a few pairs later; the blocks
+    /// of many columns spread over megabytes and miss the cache).
+    #[inline]
+    pub(crate) fn prefetch_gram(&self, a: u32, b: u32) {
+        #[cfg(target_arch = "x86_64")]
+        {
+            let (lo, hi) = (a.min(b) as usize, a.max(b) as usize);
+            if let Some(p) = self.pairs.get(hi * (hi + 1) / 2 + lo) {
+                use std::arch::x86_64::{_MM_HINT_T0, _mm_prefetch};
+                // SAFETY: a prefetch never faults, and the address is of a live element.
+                #[allow(unused_unsafe)]
+                unsafe {
+                    _mm_prefetch::<_MM_HINT_T0>((p as *const Option<Mat3>).cast::<i8>());
+                }
+            }
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        let _ = (a, b);
+    }
+
     pub(crate) fn gram(&mut self, a: u32, b: u32) -> Mat3 {
         let key = (a.min(b), a.max(b));
         let slot = key.1 as usize * (key.1 as usize + 1) / 2 + key.0 as usize;

@@ -197,6 +197,9 @@ impl FactorSource {
     }
 }
 
+/// How many node pairs ahead `accumulate` prefetches a Gram block.
+const PREFETCH_AHEAD: usize = 8;
+
 /// `W += h² J G Jᵀ` from the cached node columns and Gram blocks of the
 /// view's factor (solving the columns not cached yet). `scratch.groups` holds
 /// the node runs of `entries`.
@@ -237,6 +240,9 @@ pub(super) fn accumulate(
     for gi in 0..sc.groups.len() {
         let (si, ei) = sc.groups[gi];
         for gj in 0..sc.groups.len() {
+            if let Some(&ahead) = sc.cols.get(gj + PREFETCH_AHEAD) {
+                cache.prefetch_gram(sc.cols[gi], ahead);
+            }
             let g = cache.gram(sc.cols[gi], sc.cols[gj]);
             let (sj, ej) = sc.groups[gj];
             for a in si..ei {
