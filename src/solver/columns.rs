@@ -114,6 +114,13 @@ impl ColumnPrefetch {
     }
 }
 
+/// Where the Gram block of columns `a` and `b` (either order) sits in
+/// [`ColumnCache::pairs`]: row `max` of the lower triangle, column `min`.
+fn pair_slot(a: u32, b: u32) -> usize {
+    let (lo, hi) = (a.min(b) as usize, a.max(b) as usize);
+    hi * (hi + 1) / 2 + lo
+}
+
 #[derive(Debug, Clone, Copy)]
 pub(crate) struct Column {
     pub(crate) start: usize,
@@ -310,8 +317,7 @@ impl ColumnCache {
     pub(crate) fn prefetch_gram(&self, a: u32, b: u32) {
         #[cfg(target_arch = "x86_64")]
         {
-            let (lo, hi) = (a.min(b) as usize, a.max(b) as usize);
-            if let Some(p) = self.pairs.get(hi * (hi + 1) / 2 + lo) {
+            if let Some(p) = self.pairs.get(pair_slot(a, b)) {
                 use std::arch::x86_64::{_MM_HINT_T0, _mm_prefetch};
                 // SAFETY: a prefetch never faults, and the address is of a live element.
                 #[allow(unused_unsafe)]
@@ -326,7 +332,7 @@ impl ColumnCache {
 
     pub(crate) fn gram(&mut self, a: u32, b: u32) -> Mat3 {
         let key = (a.min(b), a.max(b));
-        let slot = key.1 as usize * (key.1 as usize + 1) / 2 + key.0 as usize;
+        let slot = pair_slot(a, b);
         if let Some(g) = self.pairs[slot] {
             return if a <= b { g } else { g.transpose() };
         }

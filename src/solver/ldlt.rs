@@ -103,22 +103,9 @@ impl LdltSymbolic {
             }
             a_ptr[k + 1] = a_entries.len();
         }
-        // Elimination tree (Liu's algorithm with path compression).
-        let mut parent = vec![NONE; n];
-        let mut ancestor = vec![NONE; n];
-        for k in 0..n {
-            for &(mut i, _) in &a_entries[a_ptr[k]..a_ptr[k + 1]] {
-                while i != NONE && i < k {
-                    let next = ancestor[i];
-                    ancestor[i] = k;
-                    if next == NONE {
-                        parent[i] = k;
-                        break;
-                    }
-                    i = next;
-                }
-            }
-        }
+        let parent = super::ordering::elimination_tree(n, |k| {
+            a_entries[a_ptr[k]..a_ptr[k + 1]].iter().map(|&(i, _)| i)
+        });
         // Row reaches (topological order) and column counts.
         let mut mark = vec![NONE; n];
         let mut reach_ptr = vec![0usize; n + 1];

@@ -123,18 +123,19 @@ fn amd_into(
     Ok(())
 }
 
-/// `(nnz, flops)` of the factor of `pattern` under `p`: the number of
-/// off-diagonal node blocks of `L` and `Σ_j c_j²` over its column counts,
-/// from the elimination tree and the row subtrees, without storing `L`.
-pub fn factor_cost(pattern: &BlockPattern, p: &Permutation) -> (usize, f64) {
-    let n = pattern.n;
+/// Elimination tree of a symmetric graph in its elimination order (Liu's
+/// algorithm with path compression): `parent[k]`, or `usize::MAX` for a root.
+/// `row(k)` lists the neighbours of `k` (permuted numbers; those `≥ k` are
+/// skipped).
+pub(crate) fn elimination_tree<I: IntoIterator<Item = usize>>(
+    n: usize,
+    mut row: impl FnMut(usize) -> I,
+) -> Vec<usize> {
     let mut parent = vec![usize::MAX; n];
     let mut ancestor = vec![usize::MAX; n];
     for k in 0..n {
-        let old = p.perm[k];
-        for &c in &pattern.col_idx[pattern.row_ptr[old]..pattern.row_ptr[old + 1]] {
-            let mut i = p.iperm[c];
-            while i != usize::MAX && i < k {
+        for mut i in row(k) {
+            while i < k {
                 let next = ancestor[i];
                 ancestor[i] = k;
                 if next == usize::MAX {
@@ -145,13 +146,26 @@ pub fn factor_cost(pattern: &BlockPattern, p: &Permutation) -> (usize, f64) {
             }
         }
     }
+    parent
+}
+
+/// `(nnz, flops)` of the factor of `pattern` under `p`: the number of
+/// off-diagonal node blocks of `L` and `Σ_j c_j²` over its column counts,
+/// from the elimination tree and the row subtrees, without storing `L`.
+pub fn factor_cost(pattern: &BlockPattern, p: &Permutation) -> (usize, f64) {
+    let n = pattern.n;
+    let row = |k: usize| {
+        let old = p.perm[k];
+        pattern.col_idx[pattern.row_ptr[old]..pattern.row_ptr[old + 1]]
+            .iter()
+            .map(|&c| p.iperm[c])
+    };
+    let parent = elimination_tree(n, row);
     let mut mark = vec![usize::MAX; n];
     let mut count = vec![0usize; n];
     for k in 0..n {
         mark[k] = k;
-        let old = p.perm[k];
-        for &c in &pattern.col_idx[pattern.row_ptr[old]..pattern.row_ptr[old + 1]] {
-            let mut i = p.iperm[c];
+        for mut i in row(k) {
             while i < k && mark[i] != k {
                 mark[i] = k;
                 count[i] += 1;

@@ -42,9 +42,8 @@ pub(super) struct Deflation {
     key: Option<(FactorKey, u64)>,
     /// Whether `Zᵀ A Z` was positive definite (no completion otherwise).
     active: bool,
-    z: [Vec<Vec3>; 6],
-    /// `Z` and `A Z` interleaved by node.
-    zi: Vec<[Vec3; 6]>,
+    /// `Z` and `A Z`, interleaved by node (`z[i][k]`: mode `k` at node `i`).
+    z: Vec<[Vec3; 6]>,
     az: Vec<[Vec3; 6]>,
     y: [Vec<Vec3>; 6],
     g: Matrix6<f64>,
@@ -95,38 +94,27 @@ impl Deflation {
         if !(len > 0.0 && len.is_finite()) {
             return false;
         }
-        for (k, z) in self.z.iter_mut().enumerate() {
-            z.clear();
-            let mut e = Vec3::zeros();
-            e[k % 3] = 1.0;
-            z.extend(
-                x.iter()
-                    .map(|xi| if k < 3 { e } else { e.cross(&(xi - c)) / len }),
-            );
-        }
+        // The six modes, interleaved by node: `z[i][k]` is mode `k` at node `i`.
+        self.z.clear();
+        self.z.extend(x.iter().map(|xi| {
+            std::array::from_fn(|k| {
+                let mut e = Vec3::zeros();
+                e[k % 3] = 1.0;
+                if k < 3 { e } else { e.cross(&(xi - c)) / len }
+            })
+        }));
         // A Z (one pass over A for the six modes), Zᵀ A Z; y = P⁻¹ A Z;
         // S = (A Z)ᵀ Y.
         let a = body.system_matrix();
         let f = view.factor;
         let mut zaz = Matrix6::zeros();
         let mut s = Matrix6::zeros();
-        for buf in [
-            &mut self.zi,
-            &mut self.az,
-            &mut self.rhs,
-            &mut self.sol,
-            &mut self.work,
-        ] {
+        for buf in [&mut self.az, &mut self.rhs, &mut self.sol, &mut self.work] {
             buf.resize(n, [Vec3::zeros(); 6]);
         }
+        a.mul_vecs(&self.z, &mut self.az);
         for i in 0..n {
-            for k in 0..6 {
-                self.zi[i][k] = self.z[k][i];
-            }
-        }
-        a.mul_vecs(&self.zi, &mut self.az);
-        for i in 0..n {
-            let (zi, azi) = (&self.zi[i], &self.az[i]);
+            let (zi, azi) = (&self.z[i], &self.az[i]);
             for k in 0..6 {
                 for l in 0..6 {
                     zaz[(l, k)] += zi[l].dot(&azi[k]);
@@ -192,7 +180,7 @@ impl Deflation {
             let s = self.slot[r] as usize;
             let k = e.node as usize;
             for c in 0..6 {
-                self.u[s][c] += e.h.dot(&self.z[c][k]);
+                self.u[s][c] += e.h.dot(&self.z[k][c]);
                 self.v[s][c] += e.h.dot(&self.y[c][k]);
             }
         }
@@ -258,7 +246,7 @@ impl Deflation {
             let k = e.node as usize;
             let l = lambda[e.row as usize];
             for c in 0..6 {
-                a[c] += l * e.h.dot(&self.z[c][k]);
+                a[c] += l * e.h.dot(&self.z[k][c]);
                 b[c] += l * e.h.dot(&self.y[c][k]);
             }
         }
@@ -267,7 +255,7 @@ impl Deflation {
         for (i, d) in dx.iter_mut().enumerate() {
             let mut s = Vec3::zeros();
             for c in 0..6 {
-                s += self.z[c][i] * cz[c] - self.y[c][i] * cy[c];
+                s += self.z[i][c] * cz[c] - self.y[c][i] * cy[c];
             }
             *d += s;
         }
