@@ -320,6 +320,28 @@ fn assert_no_penetration(s: &common::headless::HeadlessSummary) {
     );
 }
 
+/// The scene plugin fills in the scene's contact settings only where the
+/// app left the crate's defaults: a pass limit the app chose is kept.
+#[test]
+fn the_scene_plugin_keeps_contact_settings_the_app_chose() {
+    use bevy_soft_tissue::contact::ContactSettings;
+    use bevy_soft_tissue::scenes::{CataractScenePlugin, cataract};
+    let scene = cataract::contact_settings();
+    let default = ContactSettings::default();
+    assert_ne!(scene.max_passes, default.max_passes);
+    for (chosen, expected) in [(None, scene.max_passes), (Some(5), 5)] {
+        let mut config = SoftTissueConfig::default();
+        if let Some(p) = chosen {
+            config.contact.max_passes = p;
+        }
+        let mut app = app(config);
+        app.add_plugins(CataractScenePlugin::default());
+        let c = app.world().resource::<SoftTissueConfig>().contact;
+        assert_eq!(c.max_passes, expected, "app chose {chosen:?}");
+        assert_eq!(c.alarm_distance, scene.alarm_distance);
+    }
+}
+
 #[test]
 fn cataract_scene_runs_headless() {
     let (params, s) = coarse_cataract(false, 240);

@@ -4,6 +4,7 @@ use bevy::prelude::*;
 
 use super::cataract::{self, CataractParams, ExtractionPath};
 use crate::body::BodySettings;
+use crate::contact::ContactSettings;
 use crate::error::Result;
 use crate::plugin::{SoftBody, SoftTissueConfig, Tool};
 
@@ -27,8 +28,11 @@ pub struct Vectis {
 }
 
 /// Spawns the cataract scene and drives the vectis along its path in `FixedUpdate`.
-/// Add it after `SoftTissuePlugins`: it sets the scene's alarm distance and
-/// lens–sclera friction in [`SoftTissueConfig::contact`].
+/// Add it after `SoftTissuePlugins`: it sets the scene's alarm distance,
+/// lens–sclera friction and contact-pass limit
+/// ([`cataract::contact_settings`]) in [`SoftTissueConfig::contact`] wherever
+/// the app left the crate's default there; a value the app set itself is
+/// kept.
 #[derive(Debug, Clone, Default)]
 pub struct CataractScenePlugin {
     /// Scene parameters.
@@ -40,12 +44,20 @@ pub struct CataractScenePlugin {
 
 impl Plugin for CataractScenePlugin {
     fn build(&self, app: &mut App) {
-        // The scene's scale-dependent contact settings (other settings are kept).
+        // The scene's scale-dependent contact settings, where the app kept
+        // the defaults (other settings are kept).
         if let Some(mut config) = app.world_mut().get_resource_mut::<SoftTissueConfig>() {
-            let scene = cataract::contact_settings();
-            config.contact.alarm_distance = scene.alarm_distance;
-            config.contact.body_friction = scene.body_friction;
-            config.contact.max_passes = config.contact.max_passes.max(scene.max_passes);
+            let (scene, default) = (cataract::contact_settings(), ContactSettings::default());
+            let c = &mut config.contact;
+            if c.alarm_distance == default.alarm_distance {
+                c.alarm_distance = scene.alarm_distance;
+            }
+            if c.body_friction == default.body_friction {
+                c.body_friction = scene.body_friction;
+            }
+            if c.max_passes == default.max_passes {
+                c.max_passes = scene.max_passes;
+            }
         }
         let (params, body) = (self.params.clone(), self.body);
         app.add_systems(Startup, move |mut commands: Commands| {
