@@ -42,6 +42,13 @@ pub struct CataractScenePlugin {
     pub body: BodySettings,
 }
 
+/// Sets `value` to the scene's where the app left the crate's default.
+fn fill_default<T: PartialEq>(value: &mut T, default: T, scene: T) {
+    if *value == default {
+        *value = scene;
+    }
+}
+
 impl Plugin for CataractScenePlugin {
     fn build(&self, app: &mut App) {
         // The scene's scale-dependent contact settings, where the app kept
@@ -49,15 +56,17 @@ impl Plugin for CataractScenePlugin {
         if let Some(mut config) = app.world_mut().get_resource_mut::<SoftTissueConfig>() {
             let (scene, default) = (cataract::contact_settings(), ContactSettings::default());
             let c = &mut config.contact;
-            if c.alarm_distance == default.alarm_distance {
-                c.alarm_distance = scene.alarm_distance;
-            }
-            if c.body_friction == default.body_friction {
-                c.body_friction = scene.body_friction;
-            }
-            if c.max_passes == default.max_passes {
-                c.max_passes = scene.max_passes;
-            }
+            fill_default(
+                &mut c.alarm_distance,
+                default.alarm_distance,
+                scene.alarm_distance,
+            );
+            fill_default(
+                &mut c.body_friction,
+                default.body_friction,
+                scene.body_friction,
+            );
+            fill_default(&mut c.max_passes, default.max_passes, scene.max_passes);
         }
         let (params, body) = (self.params.clone(), self.body);
         app.add_systems(Startup, move |mut commands: Commands| {
