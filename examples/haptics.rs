@@ -26,6 +26,16 @@
 //! of thread timing, and the replay then repeats the haptic run step for
 //! step (the distance between their last states is printed: 0 when they
 //! agree to the bit).
+//!
+//! `--solvers` measures the tick's LCP instead, without threads: the scene
+//! steps with the vectis on the script, and after each step 16 ticks with
+//! the device along the script's next step run on the calling thread
+//! through one renderer per tick solver (`HapticSettings::default()`: the
+//! subspace step on at most 128 free rows; block Gauss–Seidel alone; the
+//! subspace step with no bound, and on at most 256 and 64 rows), each on
+//! the same problems and poses and
+//! with no time budget: the work to the tolerance, per solver, free of the
+//! scheduler's noise, and how far their forces are apart.
 
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -33,7 +43,8 @@ use std::time::Instant;
 
 use bevy_soft_tissue::core_prelude::*;
 use bevy_soft_tissue::haptics::{
-    HapticLoop, HapticSettings, HapticStats, SimulatedDevice, SimulatedHand,
+    DeviceLimits, HapticLoop, HapticProblem, HapticRenderer, HapticSettings, HapticStats,
+    SimulatedDevice, SimulatedHand,
 };
 use bevy_soft_tissue::scenes::cataract::{self, CataractParams, ExtractionPath};
 use clap::Parser;
@@ -61,6 +72,28 @@ struct Args {
     /// `HapticSettings::default()`).
     #[arg(long)]
     budget_ms: Option<f64>,
+    /// The haptic tick's LCP solver: `block` or `subspace` (default: that of
+    /// `HapticSettings::default()`).
+    #[arg(long, value_parser = lcp_solver)]
+    lcp: Option<LcpSolver>,
+    /// Most free rows the tick's subspace step factorizes (default: that of
+    /// `HapticSettings::default()`).
+    #[arg(long)]
+    subspace_rows: Option<usize>,
+    /// Measure the tick's LCP per solver on the same problems, without
+    /// threads (see the module docs), instead of the three runs.
+    #[arg(long)]
+    solvers: bool,
+}
+
+fn lcp_solver(v: &str) -> std::result::Result<LcpSolver, String> {
+    Ok(match v {
+        "pgs" => LcpSolver::ProjectedGaussSeidel,
+        "block" => LcpSolver::BlockGaussSeidel,
+        "nncg" => LcpSolver::Nncg,
+        "subspace" => LcpSolver::Subspace,
+        _ => return Err(format!("unknown LCP solver `{v}`")),
+    })
 }
 
 const H: f64 = 1.0 / 60.0;
@@ -181,7 +214,7 @@ fn replay_run(setup: &Setup, h: &HapticRun) -> Result<(Run, f64)> {
 
 /// With haptics: the hand follows the script on the scene's clock,
 /// interpolated between steps by the wall clock (at most one step).
-fn haptic_run(setup: &Setup, seconds: f64, budget_ms: Option<f64>) -> Result<HapticRun> {
+fn haptic_run(setup: &Setup, seconds: f64, args: &Args) -> Result<HapticRun> {
     let (mut haptic_scene, path) = scene(setup)?;
     haptic_scene.contact.capture_tool(Some(0));
     let clock = Arc::new(AtomicU64::new(0f64.to_bits()));
@@ -200,8 +233,14 @@ fn haptic_run(setup: &Setup, seconds: f64, budget_ms: Option<f64>) -> Result<Hap
     };
     let device = SimulatedDevice::scripted(script).with_hand(hand)?;
     let mut settings = HapticSettings::default();
-    if let Some(ms) = budget_ms {
+    if let Some(ms) = args.budget_ms {
         settings.budget = ms * 1e-3;
+    }
+    if let Some(solver) = args.lcp {
+        settings.lcp.solver = solver;
+    }
+    if let Some(rows) = args.subspace_rows {
+        settings.lcp.subspace_max_rows = rows;
     }
     let haptics = std::cell::RefCell::new(HapticLoop::start(device, settings)?);
     let start = Instant::now();
@@ -356,13 +395,16 @@ fn go(args: &Args) -> Result<()> {
         "cataract scene, {} s of scene time per run, h = 1/60 s, {} repeat(s), preconditioner {:?}",
         args.seconds, args.repeats, settings.preconditioner
     );
+    if args.solvers {
+        return solvers_bench(&setup, args.seconds);
+    }
     let (mut vs_script, mut vs_replay, mut rates, mut p99s) = (vec![], vec![], vec![], vec![]);
     for k in 0..args.repeats {
         if args.repeats > 1 {
             println!("\n--- repeat {} of {}", k + 1, args.repeats);
         }
         let base = plain_run(&setup, args.seconds)?;
-        let h = haptic_run(&setup, args.seconds, args.budget_ms)?;
+        let h = haptic_run(&setup, args.seconds, args)?;
         let (replay, apart) = replay_run(&setup, &h)?;
         report(&base, &h, &replay, apart);
         vs_script.push(slowdown(&h.run, &base));
@@ -383,5 +425,99 @@ fn go(args: &Args) -> Result<()> {
             spread(&mut vs_replay, 1)
         );
     }
+    Ok(())
+}
+
+/// `--solvers`: every step's tool problem, 16 ticks along the script's next
+/// step, through one renderer per tick solver, timed on this thread.
+fn solvers_bench(setup: &Setup, seconds: f64) -> Result<()> {
+    const TICKS: usize = 16;
+    let base = HapticSettings {
+        budget: 1.0,
+        ..HapticSettings::default()
+    };
+    let with = |solver: LcpSolver, rows: usize| {
+        let mut s = base;
+        s.lcp.solver = solver;
+        s.lcp.subspace_max_rows = rows;
+        s
+    };
+    let variants = [
+        ("default", base),
+        ("block", with(LcpSolver::BlockGaussSeidel, usize::MAX)),
+        ("subspace", with(LcpSolver::Subspace, usize::MAX)),
+        ("subspace 256", with(LcpSolver::Subspace, 256)),
+        ("subspace 64", with(LcpSolver::Subspace, 64)),
+    ];
+    let mut renderers: Vec<HapticRenderer> = variants
+        .iter()
+        .map(|(_, s)| HapticRenderer::new(*s))
+        .collect();
+    let mut work = vec![Vec::new(); variants.len()];
+    let mut unconverged = vec![0usize; variants.len()];
+    let mut apart: f64 = 0.0;
+    let mut largest: f64 = 0.0;
+    let (mut max_rows, mut sum_rows, mut ticked) = (0usize, 0usize, 0usize);
+    let limits = DeviceLimits::default();
+    let (mut scene, path) = scene(setup)?;
+    scene.contact.capture_tool(Some(0));
+    let n = (seconds / H).round() as usize;
+    for i in 0..n {
+        let t = i as f64 * H;
+        scene.tools[0].set_pose(path.pose(t + H))?;
+        scene.step(H)?;
+        let problem = scene.contact.tool_problem();
+        if problem.m() == 0 {
+            continue;
+        }
+        max_rows = max_rows.max(problem.m());
+        for (r, (_, settings)) in renderers.iter_mut().zip(&variants) {
+            let mut p = Box::<HapticProblem>::default();
+            p.set(problem, settings);
+            r.set_problem(p);
+        }
+        for k in 0..TICKS {
+            let device = path.pose(t + H + H * k as f64 / TICKS as f64);
+            let mut first = None;
+            for (v, r) in renderers.iter_mut().enumerate() {
+                let t0 = Instant::now();
+                let out = r.tick(&device, H / TICKS as f64, &limits);
+                work[v].push(t0.elapsed().as_secs_f64() * 1e3);
+                unconverged[v] += usize::from(!out.converged);
+                let f = out.contact_force;
+                match first {
+                    None => first = Some(f),
+                    Some(f0) => apart = apart.max((f - f0).norm()),
+                }
+                largest = largest.max(f.norm());
+            }
+            sum_rows += problem.m();
+            ticked += 1;
+        }
+    }
+    println!(
+        "{ticked} ticks on {} steps' tool problems (rows: mean {:.0}, max {max_rows}), no budget, one thread",
+        ticked / TICKS,
+        sum_rows as f64 / ticked.max(1) as f64
+    );
+    println!("tick work (ms): solver, mean, p50, p90, p99, max, ticks over 0.4 ms, unconverged");
+    for (v, (name, _)) in variants.iter().enumerate() {
+        let w = &mut work[v];
+        w.sort_by(f64::total_cmp);
+        let q = |p: f64| w[((w.len() - 1) as f64 * p).round() as usize];
+        let mean = w.iter().sum::<f64>() / w.len().max(1) as f64;
+        let over = w.iter().filter(|&&x| x > 0.4).count();
+        println!(
+            "  {name:<13} {mean:.4} {:.4} {:.4} {:.4} {:.3} {over} {}",
+            q(0.5),
+            q(0.9),
+            q(0.99),
+            q(1.0),
+            unconverged[v]
+        );
+    }
+    println!(
+        "largest contact force {largest:.4e} N; largest difference between the solvers' forces {apart:.3e} N"
+    );
     Ok(())
 }

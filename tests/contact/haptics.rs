@@ -116,15 +116,29 @@ fn pressing_deeper_raises_the_force_as_w_predicts() {
     let p = scene.contact.tool_problem().clone();
     let limits = DeviceLimits::default();
     let mut r = renderer(&scene, Coupling::rigid());
+    // The default tick solver (the subspace step) against block Gauss–Seidel alone.
+    let mut settings = *r.settings();
+    settings.lcp.solver = LcpSolver::BlockGaussSeidel;
+    let mut block = HapticRenderer::new(settings);
+    let mut bp = Box::<HapticProblem>::default();
+    bp.set(scene.contact.tool_problem(), &settings);
+    block.set_problem(bp);
     let base = *tool.pose();
     let f0 = r.tick(&base, 1e-3, &limits).force;
     let mut last = f0.z;
     for k in 1..=10 {
         let mut d = base;
         d.translation.vector.z -= 2e-5 * k as f64;
-        let f = r.tick(&d, 1e-3, &limits).force;
+        let out = r.tick(&d, 1e-3, &limits);
+        let f = out.force;
+        assert!(out.converged, "step {k}: {out:?}");
         assert!(f.z > last, "step {k}: {} after {last}", f.z);
         last = f.z;
+        let fb = block.tick(&d, 1e-3, &limits).force;
+        assert!(
+            close(f, fb, 1e-4),
+            "step {k}: {f} vs block Gauss–Seidel's {fb}"
+        );
     }
     // A 1 µm press against the active set's prediction.
     let active: Vec<usize> = (0..p.m()).filter(|&i| p.lambda[i] > 1e-9).collect();

@@ -326,6 +326,68 @@ fn the_subspace_solver_needs_no_more_sweeps_than_projected_gauss_seidel() {
     }
 }
 
+/// `subspace_max_rows` bounds the subspace step's LU: with 0 no step is
+/// taken and the solve is block Gauss–Seidel to the bit; with no bound the
+/// steps are taken. A stop that fires inside a subspace step ends the step
+/// there (its best iterate is kept only if it lowers the residual) and the
+/// solve right after it: the stop is asked at most twice.
+#[test]
+fn the_subspace_step_keeps_to_its_row_bound_and_its_stop() {
+    for (name, p) in shipped() {
+        let block = settings(LcpSolver::BlockGaussSeidel, 1e-6, 300);
+        let (lb, _, rb) = p.solve(&block).unwrap();
+        let bounded = LcpSettings {
+            subspace_max_rows: 0,
+            ..settings(LcpSolver::Subspace, 1e-6, 300)
+        };
+        let (ls, _, rs) = p.solve(&bounded).unwrap();
+        assert_eq!(rs.subspace_steps, 0, "{name}: {rs:?}");
+        assert_eq!(ls, lb, "{name}");
+        assert_eq!(rs.iterations, rb.iterations, "{name}");
+        let free = settings(LcpSolver::Subspace, 1e-6, 300);
+        let (_, _, rf) = p.solve(&free).unwrap();
+        assert!(rf.subspace_steps >= 1, "{name}: {rf:?}");
+
+        // A stop that always fires: the subspace step after the first sweep
+        // ends after its first Newton iteration, the solve right after it.
+        let mut l = p.lambda0.clone();
+        let mut calls = 0;
+        let mut scratch = lcp::LcpScratch::default();
+        let r = lcp::solve_until(
+            &p.w,
+            &p.delta0,
+            &p.rows,
+            &p.mu,
+            &mut l,
+            &free,
+            &mut scratch,
+            || {
+                calls += 1;
+                true
+            },
+        );
+        let first = {
+            let mut one = p.lambda0.clone();
+            let s1 = LcpSettings {
+                max_iterations: 1,
+                subspace_max_rows: 0,
+                ..free
+            };
+            lcp::solve(&p.w, &p.delta0, &p.rows, &p.mu, &mut one, &s1, &mut scratch)
+        };
+        if first.residual <= 1e-6 {
+            continue; // met by the first sweep: no subspace step to stop
+        }
+        assert_eq!(r.iterations, 1, "{name}: {r:?}");
+        assert!(r.capped || r.residual <= 1e-6, "{name}: {r:?}");
+        assert!(
+            r.residual <= first.residual,
+            "{name}: {r:?} after a sweep {first:?}"
+        );
+        assert!(calls <= 2, "{name}: {calls} calls");
+    }
+}
+
 #[test]
 fn contact_problem_files_round_trip_and_refuse_malformed_input() {
     let (_, p) = shipped().into_iter().next().unwrap();

@@ -98,7 +98,9 @@ pub fn solve_until(
                 &mut s.delta,
                 res,
                 settings.residual_tolerance,
+                settings.subspace_max_rows,
                 &mut s.subspace,
+                &mut stop,
             );
             if let Some(r) = kept {
                 report.subspace_steps += 1;

@@ -126,7 +126,9 @@ pub(super) struct SubspaceScratch {
 /// Tries one subspace step from `lambda` (with `delta = δ₀ + W λ` and its
 /// residual `current`) toward residual `target`. Returns the new residual
 /// when the step was kept (then `lambda` and `delta` hold the new forces),
-/// `None` otherwise.
+/// `None` otherwise. The step ends early, with the best iterate so far, when
+/// an active set has more than `max_rows` free rows (before its LU) or when
+/// `stop()` says so (checked before each Newton iteration after the first).
 #[allow(clippy::too_many_arguments)]
 pub(super) fn step(
     w: &[f64],
@@ -137,7 +139,9 @@ pub(super) fn step(
     delta: &mut [f64],
     current: f64,
     target: f64,
+    max_rows: usize,
     s: &mut SubspaceScratch,
+    stop: &mut dyn FnMut() -> bool,
 ) -> Option<f64> {
     let m = delta0.len();
     s.lambda.clear();
@@ -157,7 +161,10 @@ pub(super) fn step(
     let mut phase1 = 0;
     let mut reclassify = true;
     let mut reclassified = 0;
-    for _ in 0..MAX_ITERATIONS {
+    for it in 0..MAX_ITERATIONS {
+        if it > 0 && stop() {
+            break;
+        }
         // Phase 2 classifies, then runs Newton on that active set until the
         // residual stops falling fast, then classifies again.
         s.prev.clone_from(&s.lambda);
@@ -176,7 +183,7 @@ pub(super) fn step(
             reclassify = false;
             reclassified += 1;
         }
-        if s.free.is_empty() {
+        if s.free.is_empty() || s.free.len() > max_rows {
             break;
         }
         update_delta(w, &s.prev, &s.lambda, &mut s.delta);

@@ -48,6 +48,12 @@ pub struct LcpSettings {
     pub over_relaxation: f64,
     /// Start from the previous step's forces of persisting contacts.
     pub warm_start: bool,
+    /// Most free rows a subspace step ([`LcpSolver::Subspace`]) factorizes:
+    /// a step whose active set has more stops there and leaves the problem
+    /// to the sweeps. The LU costs `2/3 f³` for `f` free rows and cannot be
+    /// interrupted, so a caller with a time budget (the haptic tick) bounds
+    /// it here. Default `usize::MAX` (no bound).
+    pub subspace_max_rows: usize,
 }
 
 impl LcpSettings {
@@ -89,6 +95,7 @@ impl Default for LcpSettings {
             displacement_tolerance: 0.0,
             over_relaxation: 1.0,
             warm_start: true,
+            subspace_max_rows: usize::MAX,
         }
     }
 }
