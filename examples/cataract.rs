@@ -103,7 +103,7 @@ struct Args {
     #[arg(long)]
     energy_tolerance: Option<f64>,
     /// The contact solver: pgs, block, nncg or subspace.
-    #[arg(long, default_value = "subspace", value_parser = lcp_solver)]
+    #[arg(long, default_value = "subspace", value_parser = common::args::lcp_solver)]
     lcp: LcpSolver,
     /// Write each step's first-pass contact problem to this folder (for the
     /// `lcp` bench).
@@ -125,16 +125,6 @@ fn compliance(v: &str) -> Result<ComplianceMode, String> {
         "rest" => ComplianceMode::RestPrecomputed,
         "dense" => ComplianceMode::DenseRows,
         _ => return Err(format!("unknown compliance `{v}`")),
-    })
-}
-
-fn lcp_solver(v: &str) -> Result<LcpSolver, String> {
-    Ok(match v {
-        "pgs" => LcpSolver::ProjectedGaussSeidel,
-        "block" => LcpSolver::BlockGaussSeidel,
-        "nncg" => LcpSolver::Nncg,
-        "subspace" => LcpSolver::Subspace,
-        _ => return Err(format!("unknown LCP solver `{v}`")),
     })
 }
 

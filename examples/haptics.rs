@@ -2,7 +2,8 @@
 //! 1 kHz, against the same scene without haptics.
 //!
 //! ```text
-//! cargo run --release --example haptics -- --seconds 10 [--coarse] [--repeats N]
+//! cargo run --release --example haptics -- --seconds 10 [--coarse] [--repeats N] [--lag N]
+//!     [--budget-ms MS] [--lcp pgs|block|nncg|subspace] [--subspace-rows N] [--solvers]
 //! ```
 //!
 //! The device's hand follows the scripted extraction on the scene's clock
@@ -33,9 +34,12 @@
 //! through one renderer per tick solver (`HapticSettings::default()`: the
 //! subspace step on at most 128 free rows; block Gauss–Seidel alone; the
 //! subspace step with no bound, and on at most 256 and 64 rows), each on
-//! the same problems and poses and
-//! with no time budget: the work to the tolerance, per solver, free of the
-//! scheduler's noise, and how far their forces are apart.
+//! the same problems and poses and with no time budget: the work to the
+//! tolerance, per solver, free of the scheduler's noise, and how far their
+//! forces are apart. `--lcp` and `--subspace-rows` set the haptic loop's
+//! tick solver in the three runs.
+
+mod common;
 
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -72,9 +76,9 @@ struct Args {
     /// `HapticSettings::default()`).
     #[arg(long)]
     budget_ms: Option<f64>,
-    /// The haptic tick's LCP solver: `block` or `subspace` (default: that of
+    /// The haptic tick's LCP solver: pgs, block, nncg or subspace (default: that of
     /// `HapticSettings::default()`).
-    #[arg(long, value_parser = lcp_solver)]
+    #[arg(long, value_parser = common::args::lcp_solver)]
     lcp: Option<LcpSolver>,
     /// Most free rows the tick's subspace step factorizes (default: that of
     /// `HapticSettings::default()`).
@@ -84,16 +88,6 @@ struct Args {
     /// threads (see the module docs), instead of the three runs.
     #[arg(long)]
     solvers: bool,
-}
-
-fn lcp_solver(v: &str) -> std::result::Result<LcpSolver, String> {
-    Ok(match v {
-        "pgs" => LcpSolver::ProjectedGaussSeidel,
-        "block" => LcpSolver::BlockGaussSeidel,
-        "nncg" => LcpSolver::Nncg,
-        "subspace" => LcpSolver::Subspace,
-        _ => return Err(format!("unknown LCP solver `{v}`")),
-    })
 }
 
 const H: f64 = 1.0 / 60.0;

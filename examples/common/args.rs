@@ -1,5 +1,6 @@
 //! Command-line values shared by the examples (parsers for clap).
 
+use bevy_soft_tissue::contact::LcpSolver;
 use bevy_soft_tissue::solver::PreconditionerKind;
 
 /// `none`, `jacobi`, `exact`, `async`, `lagN` (`AsyncLagged`: the factor
@@ -18,5 +19,16 @@ pub fn preconditioner(v: &str) -> Result<PreconditionerKind, String> {
             every: whole(&p[8..])?,
         },
         _ => return Err(format!("unknown preconditioner `{v}`")),
+    })
+}
+
+/// The contact solver: `pgs`, `block`, `nncg` or `subspace` (`LcpSolver`).
+pub fn lcp_solver(v: &str) -> Result<LcpSolver, String> {
+    Ok(match v {
+        "pgs" => LcpSolver::ProjectedGaussSeidel,
+        "block" => LcpSolver::BlockGaussSeidel,
+        "nncg" => LcpSolver::Nncg,
+        "subspace" => LcpSolver::Subspace,
+        _ => return Err(format!("unknown LCP solver `{v}`")),
     })
 }
