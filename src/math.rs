@@ -59,10 +59,10 @@ fn svd3(f: &Mat3) -> Option<(Mat3, Vec3, Mat3)> {
 /// choice jumps by up to a half turn between steps. Keeping the candidate
 /// nearest the previous rotation follows the element's turning without the jumps.
 pub fn polar_rotation_near(f: &Mat3, prev: &Mat3) -> Mat3 {
-    let scale = f.norm();
+    let scale2 = f.norm_squared();
     let det = f.determinant();
-    if scale.is_finite() && det > 1e-6 * scale * scale * scale {
-        return polar_rotation_fast(f);
+    if safely_positive(scale2, det) {
+        return polar_newton(f, scale2, det).unwrap_or_else(|| polar_rotation(f));
     }
     let Some((u, _, v_t)) = svd3(f) else {
         return *prev;
@@ -144,34 +144,53 @@ pub fn unit_lower_solve_mat(l: &[f64; 3], b: &Mat3) -> Mat3 {
 /// step) when `det F` is safely positive, and by the SVD with the sign fix for
 /// flat, inverted or non-converging cases.
 pub fn polar_rotation_fast(f: &Mat3) -> Mat3 {
-    let scale = f.norm();
+    let scale2 = f.norm_squared();
     let det = f.determinant();
-    if !(scale.is_finite() && det > 1e-6 * scale * scale * scale) {
-        return polar_rotation(f);
-    }
+    safely_positive(scale2, det)
+        .then(|| polar_newton(f, scale2, det))
+        .flatten()
+        .unwrap_or_else(|| polar_rotation(f))
+}
+
+/// Whether `det F` is safely positive for the Newton iteration: finite and
+/// above `10⁻⁶ ‖F‖³` (`scale2 = ‖F‖²`, Frobenius).
+#[inline]
+fn safely_positive(scale2: f64, det: f64) -> bool {
+    scale2.is_finite() && det > 1e-6 * scale2 * scale2.sqrt()
+}
+
+/// Higham's scaled Newton iteration for the rotation of `F` (`scale2 = ‖F‖²`,
+/// `det = det F > 0`); `None` if it leaves the positive determinants or does
+/// not converge in 12 steps. Per step one cofactor, two divisions and two
+/// square roots: with `C = cof X = det X · X⁻ᵀ`,
+/// `γ = (‖X⁻ᵀ‖/‖X‖)^½ = (‖C‖² / (det² ‖X‖²))^¼` and
+/// `X ← ½ γ X + C / (2 γ det X)`.
+#[inline]
+fn polar_newton(f: &Mat3, scale2: f64, det: f64) -> Option<Mat3> {
     let mut x = *f;
-    let mut d = det;
+    let (mut d, mut x2) = (det, scale2);
     for _ in 0..12 {
-        // X⁻ᵀ = cof(X) / det(X).
-        let c0 = x.column(1).cross(&x.column(2));
-        let c1 = x.column(2).cross(&x.column(0));
-        let c2 = x.column(0).cross(&x.column(1));
-        let inv_t = Mat3::from_columns(&[c0, c1, c2]) / d;
-        let gamma = (inv_t.norm() / x.norm()).sqrt();
-        let next = (x * gamma + inv_t / gamma) * 0.5;
-        let delta = (next - x).norm();
+        let c = Mat3::from_columns(&[
+            x.column(1).cross(&x.column(2)),
+            x.column(2).cross(&x.column(0)),
+            x.column(0).cross(&x.column(1)),
+        ]);
+        let gamma = (c.norm_squared() / (d * d * x2)).sqrt().sqrt();
+        let next = x * (0.5 * gamma) + c * (0.5 / (gamma * d));
+        let delta2 = (next - x).norm_squared();
         x = next;
+        x2 = x.norm_squared();
         // Quadratic convergence: the error of `next` is of the order of
-        // `delta²`, so a step of 1e-8 leaves it near rounding.
-        if delta <= 1e-8 * x.norm() {
-            return x;
+        // `delta²`, so a step of 1e-8 (relative) leaves it near rounding.
+        if delta2 <= 1e-16 * x2 {
+            return Some(x);
         }
         d = x.determinant();
         if d.is_nan() || d <= 0.0 {
-            break;
+            return None;
         }
     }
-    polar_rotation(f)
+    None
 }
 
 /// Whether the CPU runs the AVX2/FMA kernels of the solver and the compliance
