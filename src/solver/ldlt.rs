@@ -25,6 +25,8 @@ use super::ordering::{Ordering, Permutation};
 
 use crate::error::{Result, SoftTissueError};
 use crate::fem::assembly::{BlockCsr, BlockPattern};
+#[cfg(target_arch = "x86_64")]
+use crate::math::x86;
 use crate::math::{
     Mat3, Vec3, has_avx2_fma, unit_lower_solve, unit_lower_solve_mat, unit_lower_t_solve,
 };
@@ -600,82 +602,6 @@ fn sub_products_avx2(l: &[Mat3], rows: &[usize], z: &Mat3, work: &mut [Mat3]) {
             _mm256_storeu_pd(wp.add(3), acc[1]);
             x86::store3_ptr(wp.add(6), acc[2]);
         }
-    }
-}
-
-/// AVX2 helpers shared by the kernels: 3-vectors and 3×3 column-major blocks
-/// moved in and out of four-lane registers without touching memory past them.
-#[cfg(target_arch = "x86_64")]
-mod x86 {
-    use super::{Mat3, Vec3};
-    use std::arch::x86_64::*;
-
-    /// Three `f64` at `p` in lanes 0–2, lane 3 zero.
-    ///
-    /// # Safety
-    /// `p..p + 3` must be readable.
-    #[inline]
-    #[target_feature(enable = "avx2,fma")]
-    pub(super) unsafe fn load3_ptr(p: *const f64) -> __m256d {
-        // SAFETY: the caller guarantees three readable values.
-        unsafe { _mm256_set_m128d(_mm_load_sd(p.add(2)), _mm_loadu_pd(p)) }
-    }
-
-    /// Lanes 0–2 of `v` to `p..p + 3`.
-    ///
-    /// # Safety
-    /// `p..p + 3` must be writable.
-    #[inline]
-    #[target_feature(enable = "avx2,fma")]
-    pub(super) unsafe fn store3_ptr(p: *mut f64, v: __m256d) {
-        // SAFETY: the caller guarantees three writable values.
-        unsafe {
-            _mm_storeu_pd(p, _mm256_castpd256_pd128(v));
-            _mm_store_sd(p.add(2), _mm256_extractf128_pd(v, 1));
-        }
-    }
-
-    /// `v` in lanes 0–2, lane 3 zero.
-    #[inline]
-    #[target_feature(enable = "avx2,fma")]
-    pub(super) fn load3(v: &Vec3) -> __m256d {
-        // SAFETY: a `Vec3` holds three contiguous f64.
-        unsafe { load3_ptr(v.as_slice().as_ptr()) }
-    }
-
-    /// Lanes 0–2 of `v` into `dst`.
-    #[inline]
-    #[target_feature(enable = "avx2,fma")]
-    pub(super) fn store3(dst: &mut Vec3, v: __m256d) {
-        // SAFETY: a `Vec3` holds three contiguous f64.
-        unsafe { store3_ptr(dst.as_mut_slice().as_mut_ptr(), v) }
-    }
-
-    /// The three columns of `m`, each in lanes 0–2 with lane 3 zero.
-    #[inline]
-    #[target_feature(enable = "avx2,fma")]
-    pub(super) fn columns(m: &Mat3) -> [__m256d; 3] {
-        let p = m.as_slice().as_ptr();
-        let zero = _mm256_setzero_pd();
-        // SAFETY: the nine entries are contiguous; the four-lane loads read
-        // offsets 0..4 and 3..7, and the last column reads 6..9.
-        unsafe {
-            [
-                _mm256_blend_pd(_mm256_loadu_pd(p), zero, 0b1000),
-                _mm256_blend_pd(_mm256_loadu_pd(p.add(3)), zero, 0b1000),
-                load3_ptr(p.add(6)),
-            ]
-        }
-    }
-
-    /// The sum of the four lanes.
-    #[inline]
-    #[target_feature(enable = "avx2,fma")]
-    pub(super) fn sum(v: __m256d) -> f64 {
-        let mut lanes = [0.0f64; 4];
-        // SAFETY: `lanes` holds four f64.
-        unsafe { _mm256_storeu_pd(lanes.as_mut_ptr(), v) };
-        (lanes[0] + lanes[1]) + (lanes[2] + lanes[3])
     }
 }
 
