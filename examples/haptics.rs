@@ -447,6 +447,8 @@ fn solvers_bench(setup: &Setup, seconds: f64) -> Result<()> {
         .iter()
         .map(|(_, s)| HapticRenderer::new(*s))
         .collect();
+    // Each renderer hands back the problem it replaces, for the next step.
+    let mut spares: Vec<Option<Box<HapticProblem>>> = vec![None; variants.len()];
     let mut work = vec![Vec::new(); variants.len()];
     let mut unconverged = vec![0usize; variants.len()];
     let mut apart: f64 = 0.0;
@@ -465,10 +467,10 @@ fn solvers_bench(setup: &Setup, seconds: f64) -> Result<()> {
             continue;
         }
         max_rows = max_rows.max(problem.m());
-        for (r, (_, settings)) in renderers.iter_mut().zip(&variants) {
-            let mut p = Box::<HapticProblem>::default();
+        for ((r, spare), (_, settings)) in renderers.iter_mut().zip(&mut spares).zip(&variants) {
+            let mut p = spare.take().unwrap_or_default();
             p.set(problem, settings);
-            r.set_problem(p);
+            *spare = r.set_problem(p);
         }
         for k in 0..TICKS {
             let device = path.pose(t + H + H * k as f64 / TICKS as f64);
@@ -489,17 +491,21 @@ fn solvers_bench(setup: &Setup, seconds: f64) -> Result<()> {
             ticked += 1;
         }
     }
+    if ticked == 0 {
+        println!("no step had a contact on the vectis: nothing to tick (run longer)");
+        return Ok(());
+    }
     println!(
         "{ticked} ticks on {} steps' tool problems (rows: mean {:.0}, max {max_rows}), no budget, one thread",
         ticked / TICKS,
-        sum_rows as f64 / ticked.max(1) as f64
+        sum_rows as f64 / ticked as f64
     );
     println!("tick work (ms): solver, mean, p50, p90, p99, max, ticks over 0.4 ms, unconverged");
     for (v, (name, _)) in variants.iter().enumerate() {
         let w = &mut work[v];
         w.sort_by(f64::total_cmp);
         let q = |p: f64| w[((w.len() - 1) as f64 * p).round() as usize];
-        let mean = w.iter().sum::<f64>() / w.len().max(1) as f64;
+        let mean = w.iter().sum::<f64>() / w.len() as f64;
         let over = w.iter().filter(|&&x| x > 0.4).count();
         println!(
             "  {name:<13} {mean:.4} {:.4} {:.4} {:.4} {:.3} {over} {}",

@@ -111,51 +111,11 @@ impl BlockCsr {
         self.values.fill(Mat3::zeros());
     }
 
-    /// `y = A x`.
+    /// `y = A x` ([`Self::mul_vecs`] with one vector).
     pub fn mul_vec(&self, x: &[Vec3], y: &mut [Vec3]) {
-        #[cfg(target_arch = "x86_64")]
-        if crate::math::has_avx2_fma() {
-            // SAFETY: the CPU supports the features the function is compiled for.
-            return unsafe { self.mul_vec_avx2(x, y) };
-        }
-        self.mul_vec_portable(x, y);
-    }
-
-    fn mul_vec_portable(&self, x: &[Vec3], y: &mut [Vec3]) {
-        let p = &*self.pattern;
-        for (i, yi) in y.iter_mut().enumerate().take(p.n) {
-            let mut acc = Vec3::zeros();
-            for s in p.row_ptr[i]..p.row_ptr[i + 1] {
-                acc += self.values[s] * x[p.col_idx[s]];
-            }
-            *yi = acc;
-        }
-    }
-
-    /// [`Self::mul_vec`] with AVX2 and FMA: each block's three columns times
-    /// broadcast entries of `x_j`, summed in registers over the row (even and
-    /// odd blocks in separate accumulators, so consecutive fused
-    /// multiply-adds do not wait on each other) and stored once per row.
-    #[cfg(target_arch = "x86_64")]
-    #[target_feature(enable = "avx2,fma")]
-    fn mul_vec_avx2(&self, x: &[Vec3], y: &mut [Vec3]) {
-        use std::arch::x86_64::*;
-        let p = &*self.pattern;
-        let term = x86::add_product;
-        for (i, yi) in y.iter_mut().enumerate().take(p.n) {
-            let range = p.row_ptr[i]..p.row_ptr[i + 1];
-            let (vals, cols) = (&self.values[range.clone()], &p.col_idx[range]);
-            let (mut even, mut odd) = (_mm256_setzero_pd(), _mm256_setzero_pd());
-            let pairs = vals.len() / 2;
-            for t in 0..pairs {
-                even = term(even, &vals[2 * t], &x[cols[2 * t]]);
-                odd = term(odd, &vals[2 * t + 1], &x[cols[2 * t + 1]]);
-            }
-            if vals.len() % 2 == 1 {
-                even = term(even, &vals[vals.len() - 1], &x[cols[vals.len() - 1]]);
-            }
-            x86::store3(yi, _mm256_add_pd(even, odd));
-        }
+        let (x, _) = x.as_chunks::<1>();
+        let (y, _) = y.as_chunks_mut::<1>();
+        self.mul_vecs(x, y);
     }
 
     /// `y_k = A x_k` for `K` vectors at once, interleaved by node
@@ -166,6 +126,10 @@ impl BlockCsr {
             // SAFETY: the CPU supports the features the function is compiled for.
             return unsafe { self.mul_vecs_avx2(x, y) };
         }
+        self.mul_vecs_portable(x, y);
+    }
+
+    fn mul_vecs_portable<const K: usize>(&self, x: &[[Vec3; K]], y: &mut [[Vec3; K]]) {
         let p = &*self.pattern;
         for (i, yi) in y.iter_mut().enumerate().take(p.n) {
             let mut acc = [Vec3::zeros(); K];
@@ -180,9 +144,11 @@ impl BlockCsr {
         }
     }
 
-    /// [`Self::mul_vecs`] with AVX2 and FMA: for each vector the same
-    /// operations in the same order as [`Self::mul_vec_avx2`], so each result
-    /// is that of [`Self::mul_vec`] to the bit.
+    /// [`Self::mul_vecs`] with AVX2 and FMA: each block's three columns times
+    /// broadcast entries of `x_j`, summed in registers over the row (even and
+    /// odd blocks in separate accumulators, so consecutive fused
+    /// multiply-adds do not wait on each other) and stored once per row; each
+    /// vector's operations are those of a product of that vector alone.
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2,fma")]
     fn mul_vecs_avx2<const K: usize>(&self, x: &[[Vec3; K]], y: &mut [[Vec3; K]]) {
@@ -264,7 +230,7 @@ mod tests {
             vec![Vec3::zeros(); pattern.n],
         );
         a.mul_vec(&x, &mut y);
-        a.mul_vec_portable(&x, &mut z);
+        a.mul_vecs_portable(x.as_chunks::<1>().0, z.as_chunks_mut::<1>().0);
         let flat =
             nalgebra::DVector::from_iterator(3 * x.len(), x.iter().flat_map(|v| [v.x, v.y, v.z]));
         let dense = a.to_dense() * flat;
