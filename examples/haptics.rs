@@ -477,7 +477,7 @@ fn solvers_bench(setup: &Setup, seconds: f64) -> Result<()> {
             let mut first = None;
             for (v, r) in renderers.iter_mut().enumerate() {
                 let t0 = Instant::now();
-                let out = r.tick(&device, H / TICKS as f64, &limits);
+                let out = r.tick(&device, &limits);
                 work[v].push(t0.elapsed().as_secs_f64() * 1e3);
                 unconverged[v] += usize::from(!out.converged);
                 let f = out.contact_force;

@@ -498,11 +498,19 @@ fn lens_loads_through_the_asset_server() {
             TissueMaterial::new(1000.0, 5e3, 0.45),
         ))
         .id();
-    // A malformed file, written where the asset server reads (removed below).
+    // A malformed file, written where the asset server reads (removed when
+    // the guard drops, also when an assertion below fails).
+    struct Removed(std::path::PathBuf);
+    impl Drop for Removed {
+        fn drop(&mut self) {
+            let _ = std::fs::remove_file(&self.0);
+        }
+    }
     let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("assets");
     let bad_name = format!("broken-{}.msh", std::process::id());
+    let bad_file = Removed(dir.join(&bad_name));
     std::fs::write(
-        dir.join(&bad_name),
+        &bad_file.0,
         b"$MeshFormat\n4.1 0 8\n$EndMeshFormat\n$Nodes\n1 2 1\n",
     )
     .unwrap();
@@ -520,7 +528,7 @@ fn lens_loads_through_the_asset_server() {
             server.get_load_state(&bad)
         );
     }
-    let _ = std::fs::remove_file(dir.join(&bad_name));
+    drop(bad_file);
     let mesh = app
         .world()
         .resource::<Assets<TetMeshAsset>>()

@@ -110,7 +110,8 @@ fn displaced(base: &Pose, q: &[f64; 6]) -> Pose {
 ///
 /// Per tick, with the device at `q_d` (relative to the pose the problem was
 /// solved at) and the coupling's spring `k` and damper `c` (per
-/// translation and rotation, `k' = k + c / Δt`):
+/// translation and rotation, `k' = k + c / Δt`, `Δt` the nominal tick
+/// period):
 ///
 /// 1. the coupling's rest target `q* = (k q_d + (c/Δt)(q_d − q_d⁻ + q_p⁻)) / k'`
 ///    (`⁻`: the previous tick);
@@ -164,8 +165,17 @@ impl HapticRenderer {
         self.problem.replace(problem)
     }
 
-    /// One tick with the device at `device`, `dt` seconds after the last.
-    pub fn tick(&mut self, device: &Pose, dt: f64, limits: &DeviceLimits) -> TickOutput {
+    /// One tick with the device at `device`.
+    ///
+    /// The coupling's damper is discretized at the nominal period
+    /// ([`HapticSettings::period`]) whenever the tick really comes: the
+    /// coupled matrix holds `C = 1/(k + c/Δt)` at that period, and step 1 must
+    /// use the same `Δt`, or a held device would see the damper pull like a
+    /// spring (a tick after a late one, `Δt` a tenth of the period, would rest
+    /// the proxy at several times `F/k` from the device). A late tick is
+    /// damped as if on time, which stays passive (the damper still only takes
+    /// energy out).
+    pub fn tick(&mut self, device: &Pose, limits: &DeviceLimits) -> TickOutput {
         let start = Instant::now();
         let finite = device.translation.vector.iter().all(|c| c.is_finite())
             && device.rotation.coords.iter().all(|c| c.is_finite());
@@ -201,11 +211,7 @@ impl HapticRenderer {
             self.settings.coupling.damping,
             self.settings.coupling.angular_damping,
         ];
-        let dt = if dt.is_finite() && dt > 0.0 {
-            dt
-        } else {
-            self.settings.period()
-        };
+        let dt = self.settings.period();
         let mut target = qd;
         for i in 0..6 {
             let g = i / 3;

@@ -238,7 +238,7 @@ fn run(
         let time = t0.duration_since(stats.start).as_secs_f64();
         let pose = device.pose(time);
         let dt = last_tick.map_or(period, |t| t0.duration_since(t).as_secs_f64());
-        let out = renderer.tick(&pose, dt, &limits);
+        let out = renderer.tick(&pose, &limits);
         device.set_output(out.force, out.torque);
         let work = t0.elapsed().as_secs_f64();
 

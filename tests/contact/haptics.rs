@@ -77,7 +77,7 @@ fn haptic_force_at_the_step_pose_is_the_tool_reaction() {
     let limits = DeviceLimits::default();
 
     let mut rigid = renderer(&scene, Coupling::rigid());
-    let out = rigid.tick(tool.pose(), 1e-3, &limits);
+    let out = rigid.tick(tool.pose(), &limits);
     assert!(out.converged);
     assert!(close(out.force, force, 1e-4), "{} vs {force}", out.force);
     assert!(
@@ -95,9 +95,9 @@ fn haptic_force_at_the_step_pose_is_the_tool_reaction() {
     device.translation.vector -= force / c.stiffness;
     device.rotation =
         UnitQuaternion::from_scaled_axis(-torque / c.angular_stiffness) * device.rotation;
-    let mut out = coupled.tick(&device, 1e-3, &limits);
+    let mut out = coupled.tick(&device, &limits);
     for _ in 0..200 {
-        out = coupled.tick(&device, 1e-3, &limits);
+        out = coupled.tick(&device, &limits);
     }
     assert!(close(out.force, force, 1e-3), "{} vs {force}", out.force);
     let drift = (out.proxy.translation.vector - tool.pose().translation.vector).norm();
@@ -124,17 +124,17 @@ fn pressing_deeper_raises_the_force_as_w_predicts() {
     bp.set(scene.contact.tool_problem(), &settings);
     block.set_problem(bp);
     let base = *tool.pose();
-    let f0 = r.tick(&base, 1e-3, &limits).force;
+    let f0 = r.tick(&base, &limits).force;
     let mut last = f0.z;
     for k in 1..=10 {
         let mut d = base;
         d.translation.vector.z -= 2e-5 * k as f64;
-        let out = r.tick(&d, 1e-3, &limits);
+        let out = r.tick(&d, &limits);
         let f = out.force;
         assert!(out.converged, "step {k}: {out:?}");
         assert!(f.z > last, "step {k}: {} after {last}", f.z);
         last = f.z;
-        let fb = block.tick(&d, 1e-3, &limits).force;
+        let fb = block.tick(&d, &limits).force;
         assert!(
             close(f, fb, 1e-4),
             "step {k}: {f} vs block Gauss–Seidel's {fb}"
@@ -152,7 +152,7 @@ fn pressing_deeper_raises_the_force_as_w_predicts() {
     let mut d = base;
     d.translation.vector.z += dz;
     let mut r = renderer(&scene, Coupling::rigid());
-    let got = r.tick(&d, 1e-3, &limits).force.z - f0.z;
+    let got = r.tick(&d, &limits).force.z - f0.z;
     assert!(predicted > 0.0);
     assert!(
         (got - predicted).abs() <= 1e-3 * predicted,
@@ -195,7 +195,7 @@ fn a_held_push_settles() {
             r.set_problem(p);
         }
         let pose = device.pose(tick as f64 * dt);
-        let out = r.tick(&pose, dt, &limits);
+        let out = r.tick(&pose, &limits);
         device.set_output(out.force, out.torque);
         assert!(out.force.iter().all(|c| c.is_finite()));
         proxy = out.proxy;
@@ -290,16 +290,16 @@ fn a_non_finite_device_pose_renders_no_force() {
     let pose = *scene.tools[0].pose();
     let mut r = renderer(&scene, Coupling::default());
     let limits = DeviceLimits::default();
-    let good = r.tick(&pose, 1e-3, &limits);
+    let good = r.tick(&pose, &limits);
     assert!(!good.bad_pose && good.force.norm() > 0.0);
     let mut bad = pose;
     bad.translation.vector.x = f64::NAN;
-    let out = r.tick(&bad, 1e-3, &limits);
+    let out = r.tick(&bad, &limits);
     assert!(out.bad_pose);
     assert_eq!(out.force, Vec3::zeros());
     assert_eq!(out.torque, Vec3::zeros());
     assert_eq!(out.proxy, good.proxy);
-    let again = r.tick(&pose, 1e-3, &limits);
+    let again = r.tick(&pose, &limits);
     assert!(!again.bad_pose && again.force.iter().all(|c| c.is_finite()));
 }
 
