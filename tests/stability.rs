@@ -24,6 +24,11 @@
 //!   and for the default in the drops (a free lens landing: a rigid-mode
 //!   motion, which `ContactSettings::rigid_modes` answers exactly) and in
 //!   the impact (a clamped block at h = 1/240, measured 5–6e-5 `E_ref`);
+//! - in every step with contact, whatever the solver, the rise beyond the
+//!   contact forces' work stays within the work the solver reports its
+//!   correction added (`ContactReport::misaccounted_work`, 0 with the exact
+//!   compliance) plus the same allowance: where the default solver's bound is
+//!   only recorded (below), its gain is the one it tells the user about;
 //! - no surface vertex is deeper than the penetration tolerance inside a tool
 //!   or the other body, by a detection of its own at the step's end.
 //!
@@ -39,7 +44,11 @@
 //! to at most 2e-4 `E_ref`, which is asserted. Where the tissue deforms
 //! under a held tool (the pressed lens, the squeezed blocks) the factor's
 //! deformation error remains: up to 1.3e-2 `E_ref` measured with the default,
-//! recorded and printed, not asserted; the guard, which refreshes the
+//! recorded and printed, not asserted against the contact forces' work alone
+//! (it is against the reported misaccounted work, which no held case's rise
+//! exceeded by more than 1e-14 `E_ref` in five runs of the suite, and no
+//! case by more than 1.1e-4); the guard,
+//! which refreshes the
 //! factor when a pass's misaccounted work exceeds [`GUARD`] of the body's
 //! energy, keeps the bound there, at the cost of many refreshes (in the
 //! cataract scene it halves the jam's steps/s, so it is off by default).
@@ -73,6 +82,9 @@ struct Monitor {
     worst_rise: f64,
     /// The largest rise in a step with contacts, relative to `e_ref`.
     contact_rise: f64,
+    /// The largest rise in a step with contacts beyond the misaccounted work
+    /// the solver reported, relative to `e_ref`.
+    unexplained: f64,
     /// Whether the energy bound is asserted in steps with contact too: the
     /// exact compliance, the energy guard, or a case that asks for it
     /// ([`Monitor::asserting_contact`]).
@@ -156,6 +168,7 @@ impl Monitor {
             steps: 0,
             worst_rise: f64::NEG_INFINITY,
             contact_rise: f64::NEG_INFINITY,
+            unexplained: f64::NEG_INFINITY,
         }
     }
 
@@ -177,7 +190,8 @@ impl Monitor {
             }
         };
         println!(
-            "{}: {} steps, largest energy rise without contact {} (asserted), with contact {} ({})",
+            "{}: {} steps, largest energy rise without contact {} (asserted), with contact {} ({}), \
+             beyond the reported misaccounted work {} (asserted)",
             self.name,
             self.steps,
             show(self.worst_rise),
@@ -186,7 +200,8 @@ impl Monitor {
                 "asserted"
             } else {
                 "recorded"
-            }
+            },
+            show(self.unexplained)
         );
     }
 
@@ -227,7 +242,11 @@ impl Monitor {
         let e = total_energy(scene, self.gravity);
         let rise = e - self.energy - work;
         let contact = scene.contact.report().contacts > 0;
+        // The work the default correction adds beyond the contact forces, as
+        // the solver reports it (0 with the exact compliance).
+        let misaccounted = scene.contact.report().misaccounted_work;
         if contact {
+            self.unexplained = self.unexplained.max((rise - misaccounted) / self.e_ref);
             self.contact_rise = self.contact_rise.max(rise / self.e_ref);
         } else {
             self.worst_rise = self.worst_rise.max(rise / self.e_ref);
@@ -240,6 +259,14 @@ impl Monitor {
                 ALLOWANCE * self.e_ref
             );
         }
+        // Whatever the solver, no energy comes from where the solver does not
+        // say: the rise stays within the misaccounted work it reports.
+        assert!(
+            rise - misaccounted <= ALLOWANCE * self.e_ref,
+            "{name}, step {s}: energy rose by {rise:.3e} J beyond the contact forces' work \
+             {work:.3e} J, of which the solver reported {misaccounted:.3e} J (allowance {:.3e} J)",
+            ALLOWANCE * self.e_ref
+        );
         self.energy = e;
         if scene.can_touch() {
             self.checker
