@@ -3,7 +3,8 @@
 //!
 //! ```text
 //! cargo run --release --example haptics -- --seconds 10 [--coarse] [--repeats N] [--lag N]
-//!     [--budget-ms MS] [--lcp pgs|block|nncg|subspace] [--subspace-rows N] [--solvers]
+//!     [--budget-ms MS] [--lcp pgs|block|nncg|subspace] [--subspace-rows N] [--no-realtime]
+//!     [--solvers]
 //! ```
 //!
 //! The device's hand follows the scripted extraction on the scene's clock
@@ -37,7 +38,9 @@
 //! the same problems and poses and with no time budget: the work to the
 //! tolerance, per solver, free of the scheduler's noise, and how far their
 //! forces are apart. `--lcp` and `--subspace-rows` set the haptic loop's
-//! tick solver in the three runs.
+//! tick solver in the three runs. `--no-realtime` runs the haptic thread at
+//! normal priority (`HapticSettings::realtime_priority` = 0); the output
+//! says which priority the thread got.
 
 mod common;
 
@@ -84,6 +87,10 @@ struct Args {
     /// `HapticSettings::default()`).
     #[arg(long)]
     subspace_rows: Option<usize>,
+    /// Run the haptic thread at normal priority instead of asking for the
+    /// real-time priority of `HapticSettings::default()`.
+    #[arg(long)]
+    no_realtime: bool,
     /// Measure the tick's LCP per solver on the same problems, without
     /// threads (see the module docs), instead of the three runs.
     #[arg(long)]
@@ -236,6 +243,9 @@ fn haptic_run(setup: &Setup, seconds: f64, args: &Args) -> Result<HapticRun> {
     if let Some(rows) = args.subspace_rows {
         settings.lcp.subspace_max_rows = rows;
     }
+    if args.no_realtime {
+        settings.realtime_priority = 0;
+    }
     let haptics = std::cell::RefCell::new(HapticLoop::start(device, settings)?);
     let start = Instant::now();
     let mut max_force: f64 = 0.0;
@@ -335,10 +345,15 @@ fn report(base: &Run, h: &HapticRun, replay: &Run, apart: f64) {
         st.overruns
     );
     println!(
-        "  start-time jitter p99: {:.3} ms over the run ({:.3} ms last 1000 ticks); LCP sweeps per tick {:.1} \
+        "  start-time jitter p99: {:.3} ms over the run ({:.3} ms last 1000 ticks, {}); LCP sweeps per tick {:.1} \
          (last 100), {} ticks stopped at the budget",
         st.run_jitter_p99 * 1e3,
         st.jitter_p99 * 1e3,
+        if st.realtime {
+            "real-time priority"
+        } else {
+            "normal priority"
+        },
         st.lcp_iterations,
         st.unconverged
     );
@@ -393,6 +408,7 @@ fn go(args: &Args) -> Result<()> {
         return solvers_bench(&setup, args.seconds);
     }
     let (mut vs_script, mut vs_replay, mut rates, mut p99s) = (vec![], vec![], vec![], vec![]);
+    let mut jitters = vec![];
     for k in 0..args.repeats {
         if args.repeats > 1 {
             println!("\n--- repeat {} of {}", k + 1, args.repeats);
@@ -405,11 +421,13 @@ fn go(args: &Args) -> Result<()> {
         vs_replay.push(slowdown(&h.run, &replay));
         rates.push(h.stats.ticks as f64 / h.stats.elapsed.max(1e-9));
         p99s.push(h.stats.run_tick_p99 * 1e3);
+        jitters.push(h.stats.run_jitter_p99 * 1e3);
     }
     if args.repeats > 1 {
         println!("\nover {} repeats:", args.repeats);
-        println!("  haptic rate {} Hz", spread(&mut rates, 1));
+        println!("  haptic rate {} Hz", spread(&mut rates, 2));
         println!("  tick work p99 {} ms", spread(&mut p99s, 3));
+        println!("  start-time jitter p99 {} ms", spread(&mut jitters, 3));
         println!(
             "  scene slowdown against the scripted run {} %",
             spread(&mut vs_script, 1)

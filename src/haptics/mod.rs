@@ -22,6 +22,11 @@
 //! simulation moves the tool to the proxy pose before each step, and the
 //! rendered stiffness never exceeds the coupling's.
 //!
+//! The thread asks for a real-time priority
+//! ([`HapticSettings::realtime_priority`]) so that it wakes on time while
+//! the simulation keeps every core busy, and runs at normal priority where
+//! the system refuses ([`HapticStats::realtime`]).
+//!
 //! | file | holds |
 //! |---|---|
 //! | `types.rs` | [`HapticSettings`], [`Coupling`], [`HapticState`], [`HapticStats`] |

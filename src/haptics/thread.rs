@@ -218,13 +218,22 @@ fn run(
     outbox: &Mailbox<HapticState>,
     stop: &AtomicBool,
 ) {
+    let realtime = raise_priority(settings.realtime_priority);
     let mut renderer = HapticRenderer::new(settings);
     let period = settings.period();
     let limits = device.limits();
     let mut stats = Stats::new();
+    stats.out.realtime = realtime;
     let mut last_tick: Option<Instant> = None;
     let mut last_force: Option<Vec3> = None;
     let (mut epoch, mut since_epoch) = (stats.start, 0u64);
+    // A real-time thread leaves the rest of its core at least this much of
+    // every tick (see `HapticSettings::realtime_priority`).
+    let min_sleep = if realtime {
+        Duration::from_secs_f64(period / 20.0)
+    } else {
+        Duration::ZERO
+    };
     while !stop.load(Ordering::Acquire) {
         let t0 = Instant::now();
         let mut new_problem = false;
@@ -297,11 +306,38 @@ fn run(
         let next = epoch + Duration::from_secs_f64(period * since_epoch as f64);
         let now = Instant::now();
         if next > now {
-            std::thread::sleep(next - now);
-        } else if now - next > Duration::from_secs_f64(10.0 * period) {
-            // Far behind (the thread was descheduled): no burst of catch-up ticks.
-            (epoch, since_epoch) = (now, 0);
+            std::thread::sleep((next - now).max(min_sleep));
+        } else {
+            if now - next > Duration::from_secs_f64(10.0 * period) {
+                // Far behind (the thread was descheduled): no burst of catch-up ticks.
+                (epoch, since_epoch) = (now, 0);
+            }
+            if realtime {
+                std::thread::sleep(min_sleep);
+            }
         }
     }
     device.set_output(Vec3::zeros(), Vec3::zeros());
+}
+
+/// Asks for the `SCHED_FIFO` scheduling class at `priority` for the calling
+/// thread (0: does not ask); whether it was granted.
+#[cfg(unix)]
+fn raise_priority(priority: u8) -> bool {
+    if priority == 0 {
+        return false;
+    }
+    let param = libc::sched_param {
+        sched_priority: i32::from(priority),
+    };
+    // SAFETY: `pthread_self` names the calling thread, and `param` is a
+    // valid `sched_param` that outlives the call; the call only changes this
+    // thread's scheduling class and reports an error code when refused.
+    unsafe { libc::pthread_setschedparam(libc::pthread_self(), libc::SCHED_FIFO, &param) == 0 }
+}
+
+/// No real-time class outside Unix: the thread runs at normal priority.
+#[cfg(not(unix))]
+fn raise_priority(_priority: u8) -> bool {
+    false
 }

@@ -333,6 +333,10 @@ fn bad_haptic_settings_are_refused() {
             },
             ..ok
         },
+        HapticSettings {
+            realtime_priority: 100,
+            ..ok
+        },
     ] {
         let e = bad.validate().unwrap_err();
         assert!(e.to_string().contains("invalid parameter"), "{e}");
@@ -347,4 +351,47 @@ fn bad_haptic_settings_are_refused() {
             })
             .is_err()
     );
+}
+
+/// A device that records the scheduling policy of the thread that reads it.
+#[cfg(unix)]
+struct PolicyProbe(Arc<std::sync::atomic::AtomicI32>);
+
+#[cfg(unix)]
+impl HapticDevice for PolicyProbe {
+    fn pose(&mut self, _time: f64) -> Pose {
+        // SAFETY: `sched_getscheduler(0)` reads the calling thread's policy.
+        let policy = unsafe { libc::sched_getscheduler(0) };
+        self.0.store(policy, Ordering::SeqCst);
+        Pose::identity()
+    }
+    fn set_output(&mut self, _force: Vec3, _torque: Vec3) {}
+}
+
+/// The haptic thread runs in the real-time class exactly when its statistics
+/// say so (granted or refused by the system), and never when the settings
+/// ask for no real-time priority.
+#[cfg(unix)]
+#[test]
+fn the_haptic_thread_reports_the_priority_it_runs_at() {
+    for priority in [HapticSettings::default().realtime_priority, 0] {
+        let seen = Arc::new(std::sync::atomic::AtomicI32::new(-1));
+        let settings = HapticSettings {
+            realtime_priority: priority,
+            ..Default::default()
+        };
+        let mut haptics = HapticLoop::start(PolicyProbe(seen.clone()), settings).unwrap();
+        let deadline = std::time::Instant::now() + std::time::Duration::from_secs(30);
+        while haptics.poll().stats.ticks < 3 && std::time::Instant::now() < deadline {
+            std::thread::sleep(std::time::Duration::from_millis(2));
+        }
+        let stats = haptics.poll().stats;
+        assert!(stats.ticks >= 3, "the loop ticks at priority {priority}");
+        let fifo = seen.load(Ordering::SeqCst) == libc::SCHED_FIFO;
+        assert_eq!(stats.realtime, fifo, "priority {priority}");
+        if priority == 0 {
+            assert!(!fifo, "no real-time class was asked for");
+        }
+        println!("priority {priority}: real-time class granted: {fifo}");
+    }
 }
