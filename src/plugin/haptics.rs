@@ -42,6 +42,8 @@ pub struct HapticsStatus {
 struct HapticLink {
     haptics: HapticLoop,
     empty: ToolContactProblem,
+    /// Whether the refusal of the real-time priority was reported.
+    warned: bool,
 }
 
 /// Diagnostic paths of the haptic loop.
@@ -97,6 +99,7 @@ impl Plugin for HapticsPlugin {
                 app.insert_resource(HapticLink {
                     haptics,
                     empty: ToolContactProblem::default(),
+                    warned: self.settings.realtime_priority == 0,
                 });
             }
             Some(Err(e)) => {
@@ -145,6 +148,14 @@ fn follow_device(
     if state.stats.ticks > 0 {
         for mut tf in &mut tools {
             to_transform(&state.proxy, &mut tf);
+        }
+        if !state.stats.realtime && !link.warned {
+            link.warned = true;
+            warn!(
+                "the haptic thread runs at normal priority: the system refused the real-time \
+                 priority of HapticSettings::realtime_priority (it may start ticks late while \
+                 the simulation keeps every core busy)"
+            );
         }
     }
     let s = &state.stats;
