@@ -484,3 +484,73 @@ fn the_contact_solver_records_its_first_pass_problem() {
     scene.step(0.01).unwrap();
     assert!(scene.contact.take_recorded_problem().is_none());
 }
+
+/// A caller that solves the same `W` again with a slowly moving `δ₀` (the
+/// haptic tick) may let the subspace step start from the last solve's LU
+/// (`LcpScratch::reuse_factorization`): on each shipped problem, a sequence
+/// of such solves meets the tolerance and the contact conditions with the
+/// forces of solves that start cold, and factorizes less often.
+#[test]
+fn reusing_the_last_factorization_keeps_the_answer_and_saves_lus() {
+    let settings = settings(LcpSolver::Subspace, 1e-8, 300);
+    for (name, p) in shipped() {
+        let mut cold = lcp::LcpScratch::default();
+        let mut warm = lcp::LcpScratch::default();
+        warm.reuse_factorization(true);
+        let (mut lc, mut lw) = (p.lambda0.clone(), p.lambda0.clone());
+        let (mut fc, mut fw, mut all_met) = (0, 0, true);
+        // δ₀ drifts by up to 0.1 % of its scale per solve, as a device moves.
+        let scale = p.delta0.iter().fold(0.0f64, |m, d| m.max(d.abs()));
+        for k in 0..12 {
+            let delta0: Vec<f64> = p
+                .delta0
+                .iter()
+                .enumerate()
+                .map(|(i, d)| d + 1e-3 * scale * k as f64 * ((i % 7) as f64 / 7.0 - 0.5))
+                .collect();
+            let rc = lcp::solve(&p.w, &delta0, &p.rows, &p.mu, &mut lc, &settings, &mut cold);
+            let rw = lcp::solve(&p.w, &delta0, &p.rows, &p.mu, &mut lw, &settings, &mut warm);
+            fc += rc.factorizations;
+            fw += rw.factorizations;
+            if rc.capped {
+                all_met = false;
+                continue; // a problem the step cannot finish (jam_hard_c169)
+            }
+            assert!(
+                !rw.capped && rw.residual <= 1e-8,
+                "{name}, solve {k}: {rw:?}"
+            );
+            assert_contact_conditions(&p, &lw, warm.delta(), 1e-6, &name);
+            let norm = lc.iter().fold(0.0f64, |m, l| m.max(l.abs()));
+            let apart = lc
+                .iter()
+                .zip(&lw)
+                .fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
+            assert!(
+                apart <= 1e-4 * norm,
+                "{name}, solve {k}: forces {apart:e} apart"
+            );
+        }
+        println!("{name}: {fw} factorizations with reuse, {fc} without");
+        if all_met {
+            assert!(
+                fw < fc,
+                "{name}: {fw} factorizations with reuse, {fc} without"
+            );
+        }
+        // After `forget_factorization` a solve starts cold again: the same
+        // forces to the bit as a fresh scratch's (reusing too, which within
+        // one solve lets a later step start from an earlier one's LU).
+        warm.forget_factorization();
+        let (mut a, mut b) = (p.lambda0.clone(), p.lambda0.clone());
+        lcp::solve(
+            &p.w, &p.delta0, &p.rows, &p.mu, &mut a, &settings, &mut warm,
+        );
+        let mut fresh = lcp::LcpScratch::default();
+        fresh.reuse_factorization(true);
+        lcp::solve(
+            &p.w, &p.delta0, &p.rows, &p.mu, &mut b, &settings, &mut fresh,
+        );
+        assert_eq!(a, b, "{name}");
+    }
+}

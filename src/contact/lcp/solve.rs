@@ -20,6 +20,25 @@ impl LcpScratch {
     pub fn delta(&self) -> &[f64] {
         &self.delta
     }
+
+    /// With `on`, the subspace step ([`LcpSolver::Subspace`]) may start from
+    /// the LU factors the last solve left, on the active set they were made
+    /// for (a triangular solve instead of a factorization), when that active
+    /// set classifies the warm start again: for a caller that solves the
+    /// same `W` again and again with a slowly changing `δ₀`, warm-started
+    /// (the haptic tick). The caller must then call [`Self::forget_factorization`]
+    /// whenever `W` changes. Off by default: each solve starts cold, so that a
+    /// solve's result does not depend on the one before.
+    pub fn reuse_factorization(&mut self, on: bool) {
+        self.subspace.reuse = on;
+        self.forget_factorization();
+    }
+
+    /// Drops the LU factors kept for [`Self::reuse_factorization`] (`W`
+    /// changed).
+    pub fn forget_factorization(&mut self) {
+        self.subspace.forget();
+    }
 }
 
 /// Solves the LCP in place with `settings.solver`. `w` is the dense,
@@ -89,6 +108,7 @@ pub fn solve_until(
             || stats.max_disp <= settings.displacement_tolerance
             || res <= settings.residual_tolerance;
         if subspace && !converged && it >= next_subspace {
+            let before = s.subspace.factorizations;
             let kept = subspace::step(
                 w,
                 delta0,
@@ -102,6 +122,7 @@ pub fn solve_until(
                 &mut s.subspace,
                 &mut stop,
             );
+            report.factorizations += s.subspace.factorizations - before;
             if let Some(r) = kept {
                 report.subspace_steps += 1;
                 res = r;

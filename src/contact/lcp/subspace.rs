@@ -100,6 +100,11 @@ pub(super) struct SubspaceScratch {
     last: Vec<usize>,
     /// The free rows of the LU factors in `mat` (phase 2; empty when none).
     lu_free: Vec<usize>,
+    /// LU factorizations made (the solve reports the difference).
+    pub(super) factorizations: usize,
+    /// Whether a step may start from the LU the last step left (the caller
+    /// solves again with the same `W`: [`super::LcpScratch::reuse_factorization`]).
+    pub(super) reuse: bool,
     /// Per normal row of a sliding contact: its linearization.
     slide: Vec<Option<Slide>>,
     /// Per normal row: the contact's class.
@@ -123,6 +128,13 @@ pub(super) struct SubspaceScratch {
     mem: Vec<MaybeUninit<u8>>,
 }
 
+impl SubspaceScratch {
+    /// Drops the LU factors a step could start from.
+    pub(super) fn forget(&mut self) {
+        self.lu_free.clear();
+    }
+}
+
 /// Tries one subspace step from `lambda` (with `delta = δ₀ + W λ` and its
 /// residual `current`) toward residual `target`. Returns the new residual
 /// when the step was kept (then `lambda` and `delta` hold the new forces),
@@ -131,6 +143,32 @@ pub(super) struct SubspaceScratch {
 /// `stop()` says so (checked before each Newton iteration after the first).
 #[allow(clippy::too_many_arguments)]
 pub(super) fn step(
+    w: &[f64],
+    delta0: &[f64],
+    rows: &[usize],
+    mu: &[f64],
+    lambda: &mut [f64],
+    delta: &mut [f64],
+    current: f64,
+    target: f64,
+    max_rows: usize,
+    s: &mut SubspaceScratch,
+    stop: &mut dyn FnMut() -> bool,
+) -> Option<f64> {
+    let kept = step_from(
+        w, delta0, rows, mu, lambda, delta, current, target, max_rows, s, stop,
+    );
+    if kept.is_none() {
+        // A step that was not kept leaves no LU to start from: the next
+        // starts cold, with phase 1.
+        s.lu_free.clear();
+    }
+    kept
+}
+
+/// [`step`] itself.
+#[allow(clippy::too_many_arguments)]
+fn step_from(
     w: &[f64],
     delta0: &[f64],
     rows: &[usize],
@@ -154,10 +192,16 @@ pub(super) fn step(
     s.kind.resize(m, Kind::Open);
     s.best.clear();
     s.last.clear();
-    s.lu_free.clear();
+    // With the LU of the last step's active set at hand (same `W`, see
+    // `reuse`), start in phase 2 and try it first: a warm-started re-solve
+    // (a haptic tick) usually keeps its active set.
+    let warm = s.reuse && !s.lu_free.is_empty();
+    if !warm {
+        s.lu_free.clear();
+    }
     let mut best = f64::INFINITY;
     let mut last_r = f64::INFINITY;
-    let mut full = false;
+    let mut full = warm;
     let mut phase1 = 0;
     let mut reclassify = true;
     let mut reclassified = 0;
@@ -189,7 +233,11 @@ pub(super) fn step(
         update_delta(w, &s.prev, &s.lambda, &mut s.delta);
         // On an unchanged active set, the last LU (a chord step: the
         // sliding rows' linearization moves a little, the rest not at all).
-        let chord = frozen && s.free == s.lu_free;
+        let chord = (frozen || warm && it == 0) && s.free == s.lu_free;
+        if !chord {
+            // The factors in `mat` are overwritten below.
+            s.lu_free.clear();
+        }
         solve_newton(w, m, s, full, chord)?;
         if full && !chord {
             s.lu_free.clone_from(&s.free);
@@ -434,6 +482,7 @@ fn solve_newton(
     s.mem
         .resize(req.unaligned_bytes_required(), MaybeUninit::uninit());
     if !reuse {
+        s.factorizations += 1;
         s.perm.clear();
         s.perm.resize(n, 0);
         s.perm_inv.clear();

@@ -107,6 +107,10 @@ pub struct LcpReport {
     pub iterations: usize,
     /// Subspace steps kept ([`LcpSolver::Subspace`]).
     pub subspace_steps: usize,
+    /// LU factorizations the subspace steps made (a chord step, or a step
+    /// that starts from the last solve's factors, makes none; see
+    /// [`super::LcpScratch::reuse_factorization`]).
+    pub factorizations: usize,
     /// Whether the solve stopped at [`LcpSettings::max_iterations`] (or where
     /// the caller of [`super::solve_until`] stopped it) without meeting any
     /// of its tolerances.
