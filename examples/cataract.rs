@@ -877,11 +877,16 @@ mod viewer {
                     );
                     let st = &h.state.stats;
                     ui.label(format!(
-                        "tick p50 {:.3} ms, p99 {:.3} ms; jitter p99 {:.2} ms; \
+                        "tick p50 {:.3} ms, p99 {:.3} ms; jitter p99 {:.2} ms ({}); \
                          {:.1} LCP sweeps per tick; {} tool contacts",
                         st.tick_p50 * 1e3,
                         st.tick_p99 * 1e3,
                         st.jitter_p99 * 1e3,
+                        if st.realtime {
+                            "real-time priority"
+                        } else {
+                            "normal priority"
+                        },
                         st.lcp_iterations,
                         h.state.contacts
                     ));
