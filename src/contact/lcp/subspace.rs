@@ -155,32 +155,6 @@ pub(super) fn step(
     s: &mut SubspaceScratch,
     stop: &mut dyn FnMut() -> bool,
 ) -> Option<f64> {
-    let kept = step_from(
-        w, delta0, rows, mu, lambda, delta, current, target, max_rows, s, stop,
-    );
-    if kept.is_none() {
-        // A step that was not kept leaves no LU to start from: the next
-        // starts cold, with phase 1.
-        s.lu_free.clear();
-    }
-    kept
-}
-
-/// [`step`] itself.
-#[allow(clippy::too_many_arguments)]
-fn step_from(
-    w: &[f64],
-    delta0: &[f64],
-    rows: &[usize],
-    mu: &[f64],
-    lambda: &mut [f64],
-    delta: &mut [f64],
-    current: f64,
-    target: f64,
-    max_rows: usize,
-    s: &mut SubspaceScratch,
-    stop: &mut dyn FnMut() -> bool,
-) -> Option<f64> {
     let m = delta0.len();
     s.lambda.clear();
     s.lambda.extend_from_slice(lambda);
@@ -238,7 +212,9 @@ fn step_from(
             // The factors in `mat` are overwritten below.
             s.lu_free.clear();
         }
-        solve_newton(w, m, s, full, chord)?;
+        if solve_newton(w, m, s, full, chord).is_none() {
+            return not_kept(s);
+        }
         if full && !chord {
             s.lu_free.clone_from(&s.free);
         }
@@ -255,7 +231,7 @@ fn step_from(
         update_delta(w, &s.prev, &s.lambda, &mut s.delta);
         let r = residual(w, delta0, rows, mu, &s.lambda, &s.delta);
         if !r.is_finite() {
-            return None;
+            return not_kept(s);
         }
         if r < best {
             best = r;
@@ -284,7 +260,7 @@ fn step_from(
         last_r = r;
     }
     if s.best.is_empty() {
-        return None;
+        return not_kept(s);
     }
     // The best iterate, back in the cone, if it beats the start (its `δ`
     // kept by the changed rows; the solve forms `W λ` afresh at its end).
@@ -299,8 +275,15 @@ fn step_from(
         delta.copy_from_slice(&s.delta);
         Some(new)
     } else {
-        None
+        not_kept(s)
     }
+}
+
+/// A step that was not kept leaves no LU to start from: the next starts
+/// cold, with phase 1.
+fn not_kept(s: &mut SubspaceScratch) -> Option<f64> {
+    s.lu_free.clear();
+    None
 }
 
 /// Phase 2 starts from the best iterate so far (when there is one) and its
