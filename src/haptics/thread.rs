@@ -227,13 +227,6 @@ fn run(
     let mut last_tick: Option<Instant> = None;
     let mut last_force: Option<Vec3> = None;
     let (mut epoch, mut since_epoch) = (stats.start, 0u64);
-    // A real-time thread leaves the rest of its core at least this much of
-    // every tick (see `HapticSettings::realtime_priority`).
-    let min_sleep = if realtime {
-        Duration::from_secs_f64(period / 20.0)
-    } else {
-        Duration::ZERO
-    };
     while !stop.load(Ordering::Acquire) {
         let t0 = Instant::now();
         let mut new_problem = false;
@@ -305,19 +298,32 @@ fn run(
         // tick does not shift the ones after it.
         let next = epoch + Duration::from_secs_f64(period * since_epoch as f64);
         let now = Instant::now();
-        if next > now {
-            std::thread::sleep((next - now).max(min_sleep));
-        } else {
-            if now - next > Duration::from_secs_f64(10.0 * period) {
-                // Far behind (the thread was descheduled): no burst of catch-up ticks.
-                (epoch, since_epoch) = (now, 0);
-            }
-            if realtime {
-                std::thread::sleep(min_sleep);
-            }
+        let until_next = (next > now).then(|| next - now);
+        if until_next.is_none() && now - next > Duration::from_secs_f64(10.0 * period) {
+            // Far behind (the thread was descheduled): no burst of catch-up ticks.
+            (epoch, since_epoch) = (now, 0);
+        }
+        let sleep = rest(realtime, period, work, until_next);
+        if !sleep.is_zero() {
+            std::thread::sleep(sleep);
         }
     }
     device.set_output(Vec3::zeros(), Vec3::zeros());
+}
+
+/// How long the loop sleeps after a tick that worked `work` seconds:
+/// until the next deadline (`until_next`; `None` when it has passed). A
+/// real-time thread leaves the rest of its core at least a twentieth of a
+/// period every tick, and after a tick that worked longer than a period at
+/// least as long as it worked, so that it never takes more than half a core
+/// (see `HapticSettings::realtime_priority`).
+fn rest(realtime: bool, period: f64, work: f64, until_next: Option<Duration>) -> Duration {
+    let least = match (realtime, work > period) {
+        (false, _) => Duration::ZERO,
+        (true, false) => Duration::from_secs_f64(period / 20.0),
+        (true, true) => Duration::from_secs_f64(work),
+    };
+    until_next.unwrap_or(Duration::ZERO).max(least)
 }
 
 /// Asks for the `SCHED_FIFO` scheduling class at `priority` for the calling
@@ -340,4 +346,29 @@ fn raise_priority(priority: u8) -> bool {
 #[cfg(not(unix))]
 fn raise_priority(_priority: u8) -> bool {
     false
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The sleep after a tick: to the deadline at normal priority; a
+    /// real-time loop keeps a twentieth of a period free, also when behind,
+    /// and after an overrun sleeps as long as the tick worked.
+    #[test]
+    fn a_real_time_loop_never_holds_its_core() {
+        let ms = |v: f64| Duration::from_secs_f64(v * 1e-3);
+        let period = 1e-3;
+        // Normal priority: to the deadline, or not at all when behind.
+        assert_eq!(rest(false, period, 0.2e-3, Some(ms(0.8))), ms(0.8));
+        assert_eq!(rest(false, period, 3e-3, None), Duration::ZERO);
+        // Real time, on schedule: to the deadline, at least 0.05 ms.
+        assert_eq!(rest(true, period, 0.2e-3, Some(ms(0.8))), ms(0.8));
+        assert_eq!(rest(true, period, 0.98e-3, Some(ms(0.02))), ms(0.05));
+        // Real time, behind: 0.05 ms after a short tick, the tick's own
+        // length after one longer than a period (half the core at most).
+        assert_eq!(rest(true, period, 0.3e-3, None), ms(0.05));
+        assert_eq!(rest(true, period, 3e-3, None), ms(3.0));
+        assert_eq!(rest(true, period, 3e-3, Some(ms(0.5))), ms(3.0));
+    }
 }

@@ -78,9 +78,12 @@ pub struct HapticSettings {
     /// the thread runs at normal priority and [`HapticStats::realtime`] says
     /// so. With it the loop wakes on time while the simulation keeps every
     /// core busy: on two cores the ticks' start-time jitter (p99) fell from
-    /// 3.4–3.9 ms to 0.09–0.17 ms, and the rate kept 1 000 Hz (README, Haptics). A real-time thread that never
-    /// slept would starve the rest of its core, so the loop then sleeps at
-    /// least a twentieth of a period every tick, also when it is behind.
+    /// 3.4–3.9 ms to 0.09–0.17 ms, and the rate kept 1 000 Hz (README,
+    /// Haptics). A real-time thread that never slept would starve the rest
+    /// of its core, so the loop then sleeps at least a twentieth of a period
+    /// every tick, also when it is behind, and after a tick that worked
+    /// longer than a period (a slow device driver, a debug build) at least
+    /// as long as it worked: at most half a core, at a lower rate.
     pub realtime_priority: u8,
 }
 
