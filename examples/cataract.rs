@@ -882,11 +882,7 @@ mod viewer {
                         st.tick_p50 * 1e3,
                         st.tick_p99 * 1e3,
                         st.jitter_p99 * 1e3,
-                        if st.realtime {
-                            "real-time priority"
-                        } else {
-                            "normal priority"
-                        },
+                        crate::common::args::priority(st.realtime),
                         st.lcp_iterations,
                         h.state.contacts
                     ));

@@ -349,11 +349,7 @@ fn report(base: &Run, h: &HapticRun, replay: &Run, apart: f64) {
          (last 100), {} ticks stopped at the budget",
         st.run_jitter_p99 * 1e3,
         st.jitter_p99 * 1e3,
-        if st.realtime {
-            "real-time priority"
-        } else {
-            "normal priority"
-        },
+        common::args::priority(st.realtime),
         st.lcp_iterations,
         st.unconverged
     );

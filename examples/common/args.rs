@@ -32,3 +32,13 @@ pub fn lcp_solver(v: &str) -> Result<LcpSolver, String> {
         _ => return Err(format!("unknown LCP solver `{v}`")),
     })
 }
+
+/// How the haptic thread runs, for the examples' output
+/// (`HapticStats::realtime`).
+pub fn priority(realtime: bool) -> &'static str {
+    if realtime {
+        "real-time priority"
+    } else {
+        "normal priority"
+    }
+}

@@ -141,15 +141,10 @@ impl HapticRenderer {
     /// A renderer with `settings` (validate them first:
     /// [`HapticSettings::validate`]).
     pub fn new(settings: HapticSettings) -> Self {
-        let mut r = Self {
+        Self {
             settings,
             ..Default::default()
-        };
-        // Ticks re-solve one problem's `W` with a slowly moving `δ`: the
-        // subspace step starts from the last tick's LU where the active set
-        // holds (`LcpScratch::reuse_factorization`).
-        r.scratch.reuse_factorization(true);
-        r
+        }
     }
 
     /// The settings.
@@ -165,7 +160,10 @@ impl HapticRenderer {
     /// Takes a new problem (from the newest simulation step) and returns the
     /// one it replaces, for reuse. The warm start becomes the step's forces.
     pub fn set_problem(&mut self, problem: Box<HapticProblem>) -> Option<Box<HapticProblem>> {
-        self.scratch.forget_factorization();
+        // Ticks re-solve this problem's `W` with a slowly moving `δ`: the
+        // subspace step may start from the last tick's LU where the active
+        // set holds; none is kept from the problem before.
+        self.scratch.reuse_factorization(true);
         self.lambda.clear();
         self.lambda.extend_from_slice(&problem.problem.lambda);
         self.problem.replace(problem)

@@ -282,7 +282,7 @@ pub(super) fn step(
 /// A step that was not kept leaves no LU to start from: the next starts
 /// cold, with phase 1.
 fn not_kept(s: &mut SubspaceScratch) -> Option<f64> {
-    s.lu_free.clear();
+    s.forget();
     None
 }
 
