@@ -109,6 +109,11 @@ pub fn solve_until(
             || res <= settings.residual_tolerance;
         if subspace && !converged && it >= next_subspace {
             let before = s.subspace.factorizations;
+            // A cycling step may enumerate classes once per solve, in its
+            // second step (a first step that misses is often finished by
+            // the next one: enumerating there cost 161 LUs on a recorded jam
+            // problem that its next step solved with 16 in all).
+            s.subspace.enumerate = subspace_gap == 2;
             let kept = subspace::step(
                 w,
                 delta0,
