@@ -280,18 +280,18 @@ fn main() -> ExitCode {
     if let Some(p) = args.passes {
         config.contact.max_passes = p.max(1);
     }
-    let has_display =
-        std::env::var_os("DISPLAY").is_some() || std::env::var_os("WAYLAND_DISPLAY").is_some();
-    if args.headless || !has_display || !cfg!(feature = "viewer") {
-        if !args.headless {
-            println!(
-                "{}; running headless",
-                if cfg!(feature = "viewer") {
-                    "no display found"
-                } else {
-                    "built without the `viewer` feature"
-                }
-            );
+    // Probed before Bevy builds the window: winit panics without a display
+    // it can connect to, the renderer without a GPU adapter.
+    let window = if args.headless {
+        Ok(())
+    } else if !cfg!(feature = "viewer") {
+        Err("built without the `viewer` feature".to_string())
+    } else {
+        common::display::x11_display().and_then(|_| viewer_adapter())
+    };
+    if args.headless || window.is_err() {
+        if let Err(why) = &window {
+            println!("{why}; running headless");
         }
         if args.haptics {
             println!(
@@ -304,6 +304,25 @@ fn main() -> ExitCode {
     #[cfg(feature = "viewer")]
     viewer::run(params, config, args.preconditioner, args.haptics);
     ExitCode::SUCCESS
+}
+
+/// Whether the renderer will find a GPU adapter (hardware or software).
+#[cfg(feature = "viewer")]
+fn viewer_adapter() -> Result<(), String> {
+    if bevy_soft_tissue::gpu::adapter_available(None) {
+        Ok(())
+    } else {
+        Err(
+            "no GPU adapter for the window (Mesa lavapipe, Debian/Ubuntu \
+             `mesa-vulkan-drivers`, gives a software one)"
+                .into(),
+        )
+    }
+}
+
+#[cfg(not(feature = "viewer"))]
+fn viewer_adapter() -> Result<(), String> {
+    Ok(())
 }
 
 #[cfg(feature = "viewer")]
@@ -793,7 +812,10 @@ mod viewer {
                     changed |= ui.radio_value(&mut s.preconditioner, i, *n).changed();
                 }
                 changed |= ui
-                    .add(egui::Slider::new(&mut s.period, 1..=32).text("refresh every N steps"))
+                    .add_enabled(
+                        s.preconditioner == 2,
+                        egui::Slider::new(&mut s.period, 1..=32).text("refresh every N steps"),
+                    )
                     .changed();
                 if changed {
                     let kind = match s.preconditioner {

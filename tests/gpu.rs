@@ -20,17 +20,10 @@ use common::bench::pole_contacts;
 #[path = "../examples/common/mod.rs"]
 mod common;
 
-fn vulkan_available() -> bool {
-    let mut desc = wgpu::InstanceDescriptor::new_without_display_handle();
-    desc.backends = wgpu::Backends::VULKAN;
-    let instance = wgpu::Instance::new(desc);
-    !bevy::tasks::block_on(instance.enumerate_adapters(wgpu::Backends::VULKAN)).is_empty()
-}
-
 /// A headless app with a render device, or `None` (with the reason printed) when
 /// this machine has no Vulkan device and we are not in CI.
 fn render_app(extra: impl FnOnce(&mut App)) -> Option<App> {
-    if !vulkan_available() {
+    if !bevy_soft_tissue::gpu::adapter_available(Some(wgpu::Backends::VULKAN)) {
         if std::env::var("CI").is_ok_and(|v| v == "true") {
             panic!("CI=true but no Vulkan adapter: is mesa-vulkan-drivers (lavapipe) installed?");
         }
@@ -46,7 +39,8 @@ fn render_app(extra: impl FnOnce(&mut App)) -> Option<App> {
     }
     let mut app = App::new();
     app.add_plugins(bevy::log::LogPlugin::default());
-    bevy_soft_tissue::gpu::add_headless_render(&mut app, Some(wgpu::Backends::VULKAN));
+    bevy_soft_tissue::gpu::add_headless_render(&mut app, Some(wgpu::Backends::VULKAN))
+        .expect("the adapter was just found");
     extra(&mut app);
     app.finish();
     app.cleanup();
@@ -164,4 +158,22 @@ fn cataract_scene_runs_with_the_gpu_path_on() {
             }
         }
     }
+}
+
+/// Without an adapter Bevy's render plugin panics; `add_headless_render`
+/// probes first and returns a clear error, leaving the app without a render
+/// device. No backend at all stands in for a machine without a GPU.
+#[test]
+fn no_adapter_is_an_error_not_a_panic() {
+    assert!(!bevy_soft_tissue::gpu::adapter_available(Some(
+        wgpu::Backends::empty()
+    )));
+    let mut app = App::new();
+    let err = bevy_soft_tissue::gpu::add_headless_render(&mut app, Some(wgpu::Backends::empty()))
+        .expect_err("no backend, no adapter");
+    let msg = err.to_string();
+    assert!(msg.contains("no GPU adapter"), "{msg}");
+    app.finish();
+    app.cleanup();
+    assert!(app.world().get_resource::<RenderDevice>().is_none());
 }

@@ -863,3 +863,35 @@ fn a_haptic_device_drives_a_tool_and_stops_with_the_app() {
     drop(app);
     assert!(dropped.load(Ordering::SeqCst), "the haptic thread stopped");
 }
+
+/// The viewer's display probe (examples/common/display.rs): winit panics
+/// inside Bevy's plugin build without an X server it can reach, so the
+/// cataract example asks first. Empty, malformed and silent displays are
+/// refused with a reason; a listening local socket is accepted.
+#[test]
+fn the_viewer_probes_its_display_before_opening_a_window() {
+    use common::display::x11_display_at;
+    for bad in ["", "foo", ":x", "host:"] {
+        let why = x11_display_at(bad).expect_err(bad);
+        assert!(!why.is_empty());
+    }
+    // A display number no server uses on this machine.
+    let free = (6000..6100)
+        .find(|n| !std::path::Path::new(&format!("/tmp/.X11-unix/X{n}")).exists())
+        .expect("a free display number");
+    #[cfg(target_os = "linux")]
+    {
+        use std::os::linux::net::SocketAddrExt;
+        use std::os::unix::net::{SocketAddr, UnixListener};
+        let name = format!("/tmp/.X11-unix/X{free}");
+        let silent = x11_display_at(&format!(":{free}"));
+        assert!(silent.is_err(), "{silent:?}");
+        // A server on the abstract socket of that name (as Linux X servers
+        // listen) answers, with or without a screen number.
+        let addr = SocketAddr::from_abstract_name(name.as_bytes()).unwrap();
+        let _server = UnixListener::bind_addr(&addr).unwrap();
+        assert_eq!(x11_display_at(&format!(":{free}")), Ok(format!(":{free}")));
+        assert!(x11_display_at(&format!("unix:{free}.0")).is_ok());
+    }
+    let _ = free;
+}

@@ -4,6 +4,7 @@
 
 pub mod args;
 pub mod bench;
+pub mod display;
 #[cfg(feature = "bevy")]
 pub mod headless;
 pub mod soak;

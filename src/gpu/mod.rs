@@ -34,12 +34,47 @@ use crate::contact::{ComplianceBackend, FactorKey, JacEntry};
 use crate::error::{Result, SoftTissueError};
 use crate::solver::ldlt::{LdltFactor, NONE};
 
+/// The wgpu backends a render app tries: `backends`, or without it Bevy's
+/// own choice (`WGPU_BACKEND` from the environment, else all).
+fn render_backends(backends: Option<wgpu::Backends>) -> wgpu::Backends {
+    backends
+        .or(bevy::render::settings::WgpuSettings::default().backends)
+        .unwrap_or(wgpu::Backends::all())
+}
+
+/// Whether this machine has any GPU adapter (hardware or software, such as
+/// Mesa lavapipe) on `backends` (`None`: those Bevy's render plugin would
+/// try). Bevy panics when it finds no adapter, so probe with this before
+/// adding a render device to an app; [`add_headless_render`] does.
+pub fn adapter_available(backends: Option<wgpu::Backends>) -> bool {
+    let backends = render_backends(backends);
+    let mut desc = wgpu::InstanceDescriptor::new_without_display_handle();
+    desc.backends = backends;
+    let instance = wgpu::Instance::new(desc);
+    !bevy::tasks::block_on(instance.enumerate_adapters(backends)).is_empty()
+}
+
 /// Adds the plugins of a windowless app with a render device (no window, no
 /// camera rendering): enough for `Res<RenderDevice>` / `Res<RenderQueue>` in
 /// main-world systems. `backends` restricts the wgpu backends (`None`: automatic).
 /// Call `app.finish()` and `app.cleanup()` after adding the rest of the app.
-pub fn add_headless_render(app: &mut bevy::app::App, backends: Option<wgpu::Backends>) {
+///
+/// # Errors
+/// [`SoftTissueError::Gpu`] when no adapter exists on those backends
+/// ([`adapter_available`]); the app is then left unchanged (Bevy itself would
+/// panic).
+pub fn add_headless_render(
+    app: &mut bevy::app::App,
+    backends: Option<wgpu::Backends>,
+) -> Result<()> {
     use bevy::render::settings::{RenderCreation, WgpuSettings};
+    if !adapter_available(backends) {
+        return Err(SoftTissueError::Gpu(format!(
+            "no GPU adapter on this machine (backends {:?}); Mesa lavapipe \
+             (Debian/Ubuntu: mesa-vulkan-drivers) gives a software Vulkan device",
+            render_backends(backends)
+        )));
+    }
     let mut settings = WgpuSettings::default();
     if backends.is_some() {
         settings.backends = backends;
@@ -61,6 +96,7 @@ pub fn add_headless_render(app: &mut bevy::app::App, backends: Option<wgpu::Back
             ..Default::default()
         },
     ));
+    Ok(())
 }
 
 /// WGSL source of the compliance kernels.
