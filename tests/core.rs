@@ -137,16 +137,24 @@ fn angle(m: Mat3) -> f64 {
 #[path = "core/robustness.rs"]
 mod robustness;
 
-// The largest single allocation of the current thread, for the loader tests
-// (a wrapper of the system allocator that notes allocation sizes).
+// The largest single allocation of the current thread, for the loader tests,
+// and the number of allocations, for the steady-state tests (a wrapper of the
+// system allocator that notes allocation sizes and counts them).
 struct TrackingAlloc;
 
 thread_local! {
     static MAX_ALLOC: std::cell::Cell<usize> = const { std::cell::Cell::new(0) };
+    static ALLOCS: std::cell::Cell<usize> = const { std::cell::Cell::new(0) };
 }
 
 fn note_alloc(size: usize) {
     let _ = MAX_ALLOC.try_with(|m| m.set(m.get().max(size)));
+    let _ = ALLOCS.try_with(|n| n.set(n.get() + 1));
+}
+
+/// Allocations (and reallocations) made by the current thread so far.
+fn allocations() -> usize {
+    ALLOCS.with(|n| n.get())
 }
 
 // SAFETY: every call is forwarded to the system allocator unchanged.

@@ -187,6 +187,9 @@ pub(super) fn step(
     s.kind.clear();
     s.kind.resize(m, Kind::Open);
     s.history.clear();
+    // One class vector per iteration at most: sized up front, so that a
+    // solve needing more iterations than any before does not grow it.
+    s.history.reserve(m * MAX_ITERATIONS);
     s.hold.clear();
     s.hold.resize(m, None);
     s.best.clear();
