@@ -340,44 +340,9 @@ mod fuzz;
 #[path = "contact/haptics.rs"]
 mod haptics;
 
-// Counts the allocations of each thread, for the steady-state test (a
-// wrapper of the system allocator).
-struct CountingAlloc;
-
-thread_local! {
-    static ALLOCS: std::cell::Cell<usize> = const { std::cell::Cell::new(0) };
-}
-
-fn note_alloc() {
-    let _ = ALLOCS.try_with(|n| n.set(n.get() + 1));
-}
-
-/// Allocations (and reallocations) made by the current thread so far.
-fn allocations() -> usize {
-    ALLOCS.with(|n| n.get())
-}
-
-// SAFETY: every call is forwarded to the system allocator unchanged.
-unsafe impl std::alloc::GlobalAlloc for CountingAlloc {
-    unsafe fn alloc(&self, l: std::alloc::Layout) -> *mut u8 {
-        note_alloc();
-        unsafe { std::alloc::System.alloc(l) }
-    }
-    unsafe fn alloc_zeroed(&self, l: std::alloc::Layout) -> *mut u8 {
-        note_alloc();
-        unsafe { std::alloc::System.alloc_zeroed(l) }
-    }
-    unsafe fn dealloc(&self, p: *mut u8, l: std::alloc::Layout) {
-        unsafe { std::alloc::System.dealloc(p, l) }
-    }
-    unsafe fn realloc(&self, p: *mut u8, l: std::alloc::Layout, size: usize) -> *mut u8 {
-        note_alloc();
-        unsafe { std::alloc::System.realloc(p, l, size) }
-    }
-}
-
-#[global_allocator]
-static ALLOC: CountingAlloc = CountingAlloc;
+#[path = "shared/alloc.rs"]
+mod alloc;
+use alloc::{allocations, assert_steady};
 
 /// Tests: allocation in the stepping loop.
 #[path = "contact/steady_state.rs"]

@@ -137,55 +137,9 @@ fn angle(m: Mat3) -> f64 {
 #[path = "core/robustness.rs"]
 mod robustness;
 
-// The largest single allocation of the current thread, for the loader tests,
-// and the number of allocations, for the steady-state tests (a wrapper of the
-// system allocator that notes allocation sizes and counts them).
-struct TrackingAlloc;
-
-thread_local! {
-    static MAX_ALLOC: std::cell::Cell<usize> = const { std::cell::Cell::new(0) };
-    static ALLOCS: std::cell::Cell<usize> = const { std::cell::Cell::new(0) };
-}
-
-fn note_alloc(size: usize) {
-    let _ = MAX_ALLOC.try_with(|m| m.set(m.get().max(size)));
-    let _ = ALLOCS.try_with(|n| n.set(n.get() + 1));
-}
-
-/// Allocations (and reallocations) made by the current thread so far.
-fn allocations() -> usize {
-    ALLOCS.with(|n| n.get())
-}
-
-// SAFETY: every call is forwarded to the system allocator unchanged.
-unsafe impl std::alloc::GlobalAlloc for TrackingAlloc {
-    unsafe fn alloc(&self, l: std::alloc::Layout) -> *mut u8 {
-        note_alloc(l.size());
-        unsafe { std::alloc::System.alloc(l) }
-    }
-    unsafe fn alloc_zeroed(&self, l: std::alloc::Layout) -> *mut u8 {
-        note_alloc(l.size());
-        unsafe { std::alloc::System.alloc_zeroed(l) }
-    }
-    unsafe fn dealloc(&self, p: *mut u8, l: std::alloc::Layout) {
-        unsafe { std::alloc::System.dealloc(p, l) }
-    }
-    unsafe fn realloc(&self, p: *mut u8, l: std::alloc::Layout, size: usize) -> *mut u8 {
-        note_alloc(size);
-        unsafe { std::alloc::System.realloc(p, l, size) }
-    }
-}
-
-#[global_allocator]
-static ALLOC: TrackingAlloc = TrackingAlloc;
-
-fn reset_max_alloc() {
-    MAX_ALLOC.with(|m| m.set(0));
-}
-
-fn max_alloc() -> usize {
-    MAX_ALLOC.with(|m| m.get())
-}
+#[path = "shared/alloc.rs"]
+mod alloc;
+use alloc::{allocations, assert_steady, max_alloc, reset_max_alloc};
 
 /// Tests: meshes, files, parameters, materials, rescues and rotations.
 #[path = "core/inputs_and_rotations.rs"]

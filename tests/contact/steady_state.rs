@@ -37,19 +37,6 @@ fn a_contact_step_allocates_nothing_once_warm() {
             counts.push(allocations() - before);
             assert!(r.contacts > 5, "{mode:?} step {s}: {r:?}");
         }
-        // The first time a lagged step waits for its factor, crossbeam makes
-        // the waiting thread's context and the channel's waiter slot (once per
-        // thread and channel, kept after): at most one step may show them. A
-        // per-step allocation would show in every one of the 30 steps counted.
-        let warm = &counts[10..];
-        let (steps, once) = if matches!(kind, PreconditionerKind::AsyncLagged { .. }) {
-            (1, 4)
-        } else {
-            (0, 0)
-        };
-        assert!(
-            warm.iter().filter(|&&n| n > 0).count() <= steps && warm.iter().all(|&n| n <= once),
-            "{kind:?}, {mode:?}: allocations per step {counts:?}"
-        );
+        assert_steady(kind, &counts, &format!("{kind:?}, {mode:?}"));
     }
 }

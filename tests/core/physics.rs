@@ -667,18 +667,6 @@ fn a_body_step_allocates_nothing_once_warm() {
             counts.push(allocations() - before);
             assert!(r.cg.converged, "{kind:?} step {s}: {:?}", r.cg);
         }
-        let warm = &counts[10..];
-        // The first time a lagged step waits for its factor, crossbeam makes
-        // the waiting thread's context and the channel's waiter slot (once per
-        // thread and channel, kept after): at most one step may show them.
-        let (steps, once) = if matches!(kind, PreconditionerKind::AsyncLagged { .. }) {
-            (1, 4)
-        } else {
-            (0, 0)
-        };
-        assert!(
-            warm.iter().filter(|&&n| n > 0).count() <= steps && warm.iter().all(|&n| n <= once),
-            "{kind:?}: allocations per step {counts:?}"
-        );
+        assert_steady(kind, &counts, &format!("{kind:?}"));
     }
 }
