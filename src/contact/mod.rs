@@ -57,7 +57,6 @@ mod bodies;
 pub mod compliance;
 mod correct;
 pub mod detect;
-mod held;
 mod jacobian;
 pub mod lcp;
 pub mod predict;
@@ -120,11 +119,6 @@ pub struct ContactSolver {
     captured_tool: Option<usize>,
     tool_problem: ToolContactProblem,
     selected: Vec<usize>,
-    /// Refinement passes: the last pass's contacts deeper than the
-    /// penetration tolerance, whose planes
-    /// the next pass keeps where its detection turned the vertex's normal
-    /// (see [`Self::refine`]).
-    held: Vec<Contact>,
     h: f64,
     /// First passes so far (the prediction's step count).
     steps: u64,
@@ -673,33 +667,16 @@ impl ContactSolver {
         h: f64,
     ) -> Result<()> {
         self.report.passes = 1;
-        self.held.clear();
         for pass in 1..self.settings.max_passes {
             self.detect(&*bodies, &*tools, h, PassKind::Refine)?;
             if self.report.max_penetration <= self.settings.penetration_tolerance {
                 break;
             }
-            self.hold_planes();
             self.build_compliance(bodies, PassKind::Refine, None)?;
             self.solve_lcp(&*bodies, PassKind::Refine);
             self.correct(bodies, tools, PassKind::Refine)?;
-            self.held.clear();
-            let deep = 0.0;
-            self.held
-                .extend(self.contacts.iter().filter(|c| c.gap < deep).copied());
             self.report.passes = pass + 1;
         }
         Ok(())
-    }
-
-    /// Adds the held planes to a refinement pass ([`held::hold_planes`]).
-    fn hold_planes(&mut self) {
-        let detect = &self.detect;
-        held::hold_planes(
-            &self.held,
-            &mut self.contacts,
-            |b| detect.get(b).map(|d| d.x.as_slice()),
-            self.settings.alarm_distance,
-        );
     }
 }
