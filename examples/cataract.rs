@@ -282,15 +282,9 @@ fn main() -> ExitCode {
     }
     // Probed before Bevy builds the window: winit panics without a display
     // it can connect to, the renderer without a GPU adapter.
-    let window = if args.headless {
-        Ok(())
-    } else if !cfg!(feature = "viewer") {
-        Err("built without the `viewer` feature".to_string())
-    } else {
-        common::display::x11_display().and_then(|_| viewer_adapter())
-    };
-    if args.headless || window.is_err() {
-        if let Err(why) = &window {
+    let no_window = if args.headless { None } else { no_window() };
+    if args.headless || no_window.is_some() {
+        if let Some(why) = &no_window {
             println!("{why}; running headless");
         }
         if args.haptics {
@@ -306,23 +300,18 @@ fn main() -> ExitCode {
     ExitCode::SUCCESS
 }
 
-/// Whether the renderer will find a GPU adapter (hardware or software).
+/// Why the viewer cannot open a window here, if it cannot: no X display
+/// that answers, or no GPU adapter for the renderer.
 #[cfg(feature = "viewer")]
-fn viewer_adapter() -> Result<(), String> {
-    if bevy_soft_tissue::gpu::adapter_available(None) {
-        Ok(())
-    } else {
-        Err(
-            "no GPU adapter for the window (Mesa lavapipe, Debian/Ubuntu \
-             `mesa-vulkan-drivers`, gives a software one)"
-                .into(),
-        )
-    }
+fn no_window() -> Option<String> {
+    common::display::x11_display()
+        .and_then(|_| bevy_soft_tissue::gpu::probe_adapter(None).map_err(|e| e.to_string()))
+        .err()
 }
 
 #[cfg(not(feature = "viewer"))]
-fn viewer_adapter() -> Result<(), String> {
-    Ok(())
+fn no_window() -> Option<String> {
+    Some("built without the `viewer` feature".into())
 }
 
 #[cfg(feature = "viewer")]

@@ -14,21 +14,19 @@ pub fn x11_display() -> Result<String, String> {
 
 /// [`x11_display`] for a given `DISPLAY` value.
 pub fn x11_display_at(display: &str) -> Result<String, String> {
-    let display = display.to_string();
     if display.is_empty() {
         return Err("no display (DISPLAY is unset or empty)".into());
     }
     // `[host]:number[.screen]`, host empty or `unix` for the local socket.
-    let Some((host, rest)) = display.rsplit_once(':') else {
+    let parsed = display.rsplit_once(':').and_then(|(host, rest)| {
+        let number: u16 = rest.split('.').next()?.parse().ok()?;
+        Some((host, number))
+    });
+    let Some((host, number)) = parsed else {
         return Err(format!(
             "DISPLAY={display:?} is not of the form [host]:number"
         ));
     };
-    let number: u16 = rest
-        .split('.')
-        .next()
-        .and_then(|n| n.parse().ok())
-        .ok_or_else(|| format!("DISPLAY={display:?} is not of the form [host]:number"))?;
     let reachable = if host.is_empty() || host == "unix" {
         local_socket(number)
     } else {
@@ -39,7 +37,7 @@ pub fn x11_display_at(display: &str) -> Result<String, String> {
         })
     };
     if reachable {
-        Ok(display)
+        Ok(display.to_string())
     } else {
         Err(format!("the X display {display:?} does not answer"))
     }

@@ -54,6 +54,20 @@ pub fn adapter_available(backends: Option<wgpu::Backends>) -> bool {
     !bevy::tasks::block_on(instance.enumerate_adapters(backends)).is_empty()
 }
 
+/// [`adapter_available`] as a result: [`SoftTissueError::Gpu`], saying which
+/// backends were tried and where a software adapter comes from, when there
+/// is none.
+pub fn probe_adapter(backends: Option<wgpu::Backends>) -> Result<()> {
+    if adapter_available(backends) {
+        return Ok(());
+    }
+    Err(SoftTissueError::Gpu(format!(
+        "no GPU adapter on this machine (backends {:?}); Mesa lavapipe \
+         (Debian/Ubuntu: mesa-vulkan-drivers) gives a software Vulkan device",
+        render_backends(backends)
+    )))
+}
+
 /// Adds the plugins of a windowless app with a render device (no window, no
 /// camera rendering): enough for `Res<RenderDevice>` / `Res<RenderQueue>` in
 /// main-world systems. `backends` restricts the wgpu backends (`None`: automatic).
@@ -61,20 +75,14 @@ pub fn adapter_available(backends: Option<wgpu::Backends>) -> bool {
 ///
 /// # Errors
 /// [`SoftTissueError::Gpu`] when no adapter exists on those backends
-/// ([`adapter_available`]); the app is then left unchanged (Bevy itself would
+/// ([`probe_adapter`]); the app is then left unchanged (Bevy itself would
 /// panic).
 pub fn add_headless_render(
     app: &mut bevy::app::App,
     backends: Option<wgpu::Backends>,
 ) -> Result<()> {
     use bevy::render::settings::{RenderCreation, WgpuSettings};
-    if !adapter_available(backends) {
-        return Err(SoftTissueError::Gpu(format!(
-            "no GPU adapter on this machine (backends {:?}); Mesa lavapipe \
-             (Debian/Ubuntu: mesa-vulkan-drivers) gives a software Vulkan device",
-            render_backends(backends)
-        )));
-    }
+    probe_adapter(backends)?;
     let mut settings = WgpuSettings::default();
     if backends.is_some() {
         settings.backends = backends;
