@@ -41,7 +41,10 @@
 //!    same approximation of `A⁻¹` as `W`, `Δv = Δx / h`, and the reaction on
 //!    each tool.
 //! 5. **Refine** ([`ContactSolver::refine`]): further frictionless passes while
-//!    a vertex still penetrates ([`ContactSettings::max_passes`]).
+//!    a vertex still penetrates ([`ContactSettings::max_passes`]). From the
+//!    eighth pass on, a vertex whose normal turned keeps the last pass's
+//!    plane as well (`held.rs`), which ends the few steps whose vertices
+//!    otherwise alternate between two faces up to the pass limit.
 //!
 //! A scene without tools or touching bodies does no detection work, one
 //! without contacts no compliance or LCP work, and `μ = 0` adds no friction rows.
@@ -57,6 +60,7 @@ mod bodies;
 pub mod compliance;
 mod correct;
 pub mod detect;
+mod held;
 mod jacobian;
 pub mod lcp;
 pub mod predict;
@@ -119,6 +123,10 @@ pub struct ContactSolver {
     captured_tool: Option<usize>,
     tool_problem: ToolContactProblem,
     selected: Vec<usize>,
+    /// Late refinement passes: the last pass's penetrated contacts, whose
+    /// planes the next pass keeps where its detection turned the vertex's
+    /// normal (see [`Self::refine`] and [`held::HOLD_FROM_PASS`]).
+    held: Vec<Contact>,
     h: f64,
     /// First passes so far (the prediction's step count).
     steps: u64,
@@ -659,7 +667,10 @@ impl ContactSolver {
 
     /// Runs the extra frictionless passes after the first correction, while a
     /// vertex still penetrates deeper than the tolerance (see
-    /// [`ContactSettings::max_passes`]).
+    /// [`ContactSettings::max_passes`]). Passes from the eighth on also keep
+    /// the plane of each vertex the last pass found penetrated, where this
+    /// pass's normal of it turned by about 25° to 120°, so that one LCP
+    /// pushes it out of both faces.
     pub fn refine<B: BodiesMut + ?Sized, T: ToolsMut + ?Sized>(
         &mut self,
         bodies: &mut B,
@@ -667,16 +678,38 @@ impl ContactSolver {
         h: f64,
     ) -> Result<()> {
         self.report.passes = 1;
+        self.held.clear();
         for pass in 1..self.settings.max_passes {
             self.detect(&*bodies, &*tools, h, PassKind::Refine)?;
             if self.report.max_penetration <= self.settings.penetration_tolerance {
                 break;
             }
+            if pass >= held::HOLD_FROM_PASS {
+                self.hold_planes();
+            }
             self.build_compliance(bodies, PassKind::Refine, None)?;
             self.solve_lcp(&*bodies, PassKind::Refine);
             self.correct(bodies, tools, PassKind::Refine)?;
+            // The planes this pass found penetrated, for the next pass to
+            // hold where its normals turn.
+            self.held.clear();
+            if pass + 1 >= held::HOLD_FROM_PASS {
+                self.held
+                    .extend(self.contacts.iter().filter(|c| c.gap < 0.0).copied());
+            }
             self.report.passes = pass + 1;
         }
         Ok(())
+    }
+
+    /// Adds the held planes to a refinement pass ([`held::hold_planes`]).
+    fn hold_planes(&mut self) {
+        let detect = &self.detect;
+        held::hold_planes(
+            &self.held,
+            &mut self.contacts,
+            |b| detect.get(b).map(|d| d.x.as_slice()),
+            self.settings.alarm_distance,
+        );
     }
 }
