@@ -66,20 +66,20 @@ pub(super) fn hold_planes<'a, F>(
         };
         let q = match &held.other {
             ContactOther::Tool(_) => held.point,
+            // The face's barycentric point where the other body is now.
             ContactOther::Body(side) => {
-                let Some(xb) = positions(side.body) else {
-                    continue;
-                };
-                let mut q = Vec3::zeros();
-                for i in 0..3 {
-                    if side.weights[i] != 0.0 {
-                        let Some(x) = xb.get(side.nodes[i] as usize) else {
-                            continue;
-                        };
-                        q += x * side.weights[i];
-                    }
+                let point = positions(side.body).and_then(|xb| {
+                    side.nodes
+                        .iter()
+                        .zip(side.weights)
+                        .filter(|&(_, w)| w != 0.0)
+                        .map(|(&n, w)| xb.get(n as usize).map(|x| x * w))
+                        .sum::<Option<Vec3>>()
+                });
+                match point {
+                    Some(q) => q,
+                    None => continue,
                 }
-                q
             }
         };
         let gap = held.normal.dot(&(p - q));

@@ -678,7 +678,6 @@ impl ContactSolver {
         h: f64,
     ) -> Result<()> {
         self.report.passes = 1;
-        self.held.clear();
         for pass in 1..self.settings.max_passes {
             self.detect(&*bodies, &*tools, h, PassKind::Refine)?;
             if self.report.max_penetration <= self.settings.penetration_tolerance {
