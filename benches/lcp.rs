@@ -7,6 +7,7 @@
 //! cargo bench --bench lcp                         # the problems in benches/data
 //! cargo bench --bench lcp -- --dir DIR            # and every *.lcp in DIR
 //! cargo bench --bench lcp -- --dir DIR --repeats 5 --limit 2000 --solver subspace
+//! cargo bench --bench lcp -- --dir DIR --solver subspace --misses   # and name the misses
 //! ```
 //!
 //! Record problems with `cargo run --release --example cataract -- --headless
@@ -34,6 +35,8 @@ struct Args {
     solvers: Vec<String>,
     repeats: usize,
     limit: usize,
+    /// Print the problems that miss a target within 100 sweeps.
+    misses: bool,
 }
 
 fn parse() -> Result<Args, String> {
@@ -42,6 +45,7 @@ fn parse() -> Result<Args, String> {
         solvers: Vec::new(),
         repeats: 3,
         limit: 2000,
+        misses: false,
     };
     let mut it = std::env::args().skip(1);
     while let Some(arg) = it.next() {
@@ -61,6 +65,7 @@ fn parse() -> Result<Args, String> {
                     .map_err(|e| e.to_string())?
                     .max(1)
             }
+            "--misses" => a.misses = true,
             // What `cargo bench` passes to every bench binary.
             "--bench" => {}
             other => return Err(format!("unknown argument `{other}`")),
@@ -98,6 +103,7 @@ fn load(dirs: &[PathBuf]) -> Result<Vec<(String, ContactProblem)>, String> {
 
 struct Run {
     sweeps: usize,
+    residual: f64,
     met: bool,
     ms: f64,
 }
@@ -123,6 +129,7 @@ fn run(p: &ContactProblem, solver: LcpSolver, target: f64, args: &Args) -> Run {
     let r = last.expect("at least one repeat");
     Run {
         sweeps: r.iterations,
+        residual: r.residual,
         met: r.residual <= target,
         ms: times[times.len() / 2],
     }
@@ -201,6 +208,18 @@ fn main() {
                 runs.len(),
                 median(&mut ms),
             );
+            if args.misses {
+                for ((file, p), r) in problems.iter().zip(&runs) {
+                    if !(r.met && r.sweeps <= 100) {
+                        println!(
+                            "  miss: {file} ({} contacts): {} sweeps, residual {:.1e}",
+                            p.num_contacts(),
+                            r.sweeps,
+                            r.residual
+                        );
+                    }
+                }
+            }
         }
     }
 }
