@@ -91,7 +91,7 @@ pub fn solve_until(
     let omega = settings.over_relaxation;
     let mut report = LcpReport::default();
     let mut last_norm2 = 0.0;
-    let (mut next_subspace, mut subspace_gap) = (0, 1);
+    let (mut next_subspace, mut subspace_gap, mut attempts) = (0, 1, 0);
     for it in 0..settings.max_iterations {
         if nncg {
             s.prev.copy_from_slice(lambda);
@@ -114,6 +114,9 @@ pub fn solve_until(
             // the next one (a trial that enumerated in every step took 161
             // LUs on a recorded 335-contact jam problem that needs 16 without).
             s.subspace.enumerate = subspace_gap == 2;
+            // Each step damps its Newton steps by the next shift in turn.
+            s.subspace.shift = subspace::NEWTON_SHIFTS[attempts % subspace::NEWTON_SHIFTS.len()];
+            attempts += 1;
             let kept = subspace::step(
                 w,
                 delta0,

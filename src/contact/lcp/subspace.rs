@@ -13,7 +13,8 @@
 //!    cone: forces zero), *stick* (`z` in the cone: `δ = 0`), or *slide*
 //!    (otherwise: `δ_n = 0` and `λ_t = μ λ_n P(z_t)`, `P(v) = v/‖v‖`).
 //! 2. **Newton** on those equations over the free force rows, with a dense
-//!    LU with partial pivoting (faer, sequential; the system is unsymmetric).
+//!    LU with partial pivoting (faer, sequential; the system is unsymmetric),
+//!    its `δ = 0` rows damped by a shift of their diagonal ([`NEWTON_SHIFTS`]).
 //!    - *Phase 1*, until the free rows stop changing: a sliding contact is
 //!      put on the cone's rim in the direction of `z_t` and only its normal
 //!      force is free (its column of `W` carries the tangential force
@@ -86,6 +87,29 @@ const PHASE1_ITERATIONS: usize = 5;
 /// meet 10⁻⁴ within 100.
 const PHASE2_CLASSIFICATIONS: usize = 8;
 
+/// The relative shifts of the diagonal of the Newton matrix's `δ_r = 0` rows,
+/// one per subspace step of a solve, in turn (the solve's first step uses the
+/// first, a retry the next, and so on). A step with shift `ε` solves
+/// `(W_FF + ε diag W_FF) Δλ = −δ_F`: a proximal (Levenberg–Marquardt) damping.
+/// A point where the step is zero still has `δ_F = 0`, so an active set's
+/// solution is the same; only the way there changes. Along well-conditioned
+/// directions of `W_FF` a damped step leaves a fraction of about `ε` of the
+/// error; along its near-null directions (several contacts sharing nodes,
+/// nearly dependent rows) it no longer moves the forces without bound. Those
+/// moves made the classes cycle on the cataract jam's hardest recorded
+/// problems: near a relative residual of 10⁻⁵ one contact changing class sent
+/// the next iterate to 10⁻², every time (`benches/data/jam_stall_c126.lcp`:
+/// 2 000 sweeps, capped at 8·10⁻⁵, undamped; two sweeps damped).
+///
+/// No single shift settles every recorded problem, hence the turns. On 4 254
+/// recorded jam problems, 10⁻⁶ within 100 sweeps: undamped (10⁻¹⁰, the shift
+/// before) 4 245; 10⁻³ 4 252; 3·10⁻³ 4 253; 10⁻² 4 248; 3·10⁻² 4 213. A
+/// strong damping stalls other problems in their last digits, and a solve
+/// the scene ran to its sweep limit under 3·10⁻³ met 10⁻⁶ within 100 sweeps
+/// undamped. With these three in turn every one of those problems, and of
+/// two capped ones recorded after the choice, meets 10⁻⁶ within 64 sweeps.
+pub(super) const NEWTON_SHIFTS: [f64; 3] = [1e-3, 1e-10, 1e-2];
+
 /// How a sliding contact's tangential equations are linearized.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
 struct Slide {
@@ -137,6 +161,9 @@ pub(super) struct SubspaceScratch {
     toggling: Vec<usize>,
     /// Whether a cycling step may enumerate the toggling contacts' classes.
     pub(super) enumerate: bool,
+    /// The relative diagonal shift of this step's Newton matrices (one of
+    /// [`NEWTON_SHIFTS`]).
+    pub(super) shift: f64,
     /// The Newton matrix (column-major), then its LU factors.
     mat: Vec<f64>,
     /// Right-hand side, then the step.
@@ -676,10 +703,8 @@ fn delta_row(w: &[f64], m: usize, r: usize, i: usize, s: &mut SubspaceScratch, f
     let n = s.free.len();
     let row = &w[r * m..(r + 1) * m];
     for (j, &cj) in s.free.iter().enumerate() {
-        // A shift of 1e-10 of the diagonal keeps nearly dependent rows (several
-        // contacts sharing nodes) from giving huge forces along a near-null
-        // direction of W.
-        let mut v = row[cj] * if j == i { 1.0 + 1e-10 } else { 1.0 };
+        // The diagonal shifted: a damped step (see NEWTON_SHIFTS).
+        let mut v = row[cj] * if j == i { 1.0 + s.shift } else { 1.0 };
         if let (false, Some(Slide { p, mu, .. })) = (full, s.slide[cj]) {
             v += mu * (p[0] * row[cj + 1] + p[1] * row[cj + 2]);
         }
