@@ -322,10 +322,10 @@ fn the_subspace_solver_needs_no_more_sweeps_than_projected_gauss_seidel() {
     // classification cycles (coupled contacts flipping together) until the
     // step enumerates their classes: before that, 256 sweeps and 2 000
     // (capped at 3e-5). `jam_hard_c206` needs more than three classifications
-    // in phase 2: with three, 512 sweeps. On `jam_stall_c126` an undamped
+    // in phase 2: with three, 512 sweeps. On `jam_stall_c151` an undamped
     // Newton step (a diagonal shift of 1e-10 in every step instead of
     // `NEWTON_SHIFTS` in turn) sends a residual near 1e-5 back to 1e-2
-    // whenever one contact changes class: 2 000 sweeps, capped at 8e-5.
+    // whenever one contact changes class: 2 000 sweeps, capped at 9.6e-5.
     for (name, p) in shipped() {
         let (lambda, delta, rep) = p.solve(&settings(LcpSolver::Subspace, 1e-6, 100)).unwrap();
         assert!(rep.residual <= 1e-6, "{name}: {rep:?}");

@@ -114,8 +114,13 @@ pub fn solve_until(
             // the next one (a trial that enumerated in every step took 161
             // LUs on a recorded 335-contact jam problem that needs 16 without).
             s.subspace.enumerate = subspace_gap == 2;
-            // Each step damps its Newton steps by the next shift in turn.
-            s.subspace.shift = subspace::NEWTON_SHIFTS[attempts % subspace::NEWTON_SHIFTS.len()];
+            // Each step damps its Newton steps by the next shift in turn; an
+            // LU kept for reuse was made with the shift of its own step.
+            let shift = subspace::NEWTON_SHIFTS[attempts % subspace::NEWTON_SHIFTS.len()];
+            if shift != s.subspace.shift {
+                s.subspace.forget();
+            }
+            s.subspace.shift = shift;
             attempts += 1;
             let kept = subspace::step(
                 w,
