@@ -108,6 +108,13 @@ struct Run {
     ms: f64,
 }
 
+impl Run {
+    /// Whether the solve met its target within 100 sweeps (the target).
+    fn within_100(&self) -> bool {
+        self.met && self.sweeps <= 100
+    }
+}
+
 fn run(p: &ContactProblem, solver: LcpSolver, target: f64, args: &Args) -> Run {
     let settings = LcpSettings {
         solver,
@@ -198,7 +205,7 @@ fn main() {
             let (lo, hi) = ms
                 .iter()
                 .fold((f64::INFINITY, 0.0f64), |(a, b), &x| (a.min(x), b.max(x)));
-            let within = runs.iter().filter(|r| r.met && r.sweeps <= 100).count();
+            let within = runs.iter().filter(|r| r.within_100()).count();
             let met = runs.iter().filter(|r| r.met).count();
             println!(
                 "| {name} | {target:.0e} | {:.0} | {:.0} | {within}/{} | {met}/{} | {:.2} | {lo:.2}–{hi:.2} |",
@@ -210,7 +217,7 @@ fn main() {
             );
             if args.misses {
                 for ((file, p), r) in problems.iter().zip(&runs) {
-                    if !(r.met && r.sweeps <= 100) {
+                    if !r.within_100() {
                         println!(
                             "  miss: {file} ({} contacts): {} sweeps, residual {:.1e}",
                             p.num_contacts(),

@@ -91,7 +91,7 @@ pub fn solve_until(
     let omega = settings.over_relaxation;
     let mut report = LcpReport::default();
     let mut last_norm2 = 0.0;
-    let (mut next_subspace, mut subspace_gap, mut attempts) = (0, 1, 0);
+    let (mut next_subspace, mut subspace_gap) = (0, 1usize);
     for it in 0..settings.max_iterations {
         if nncg {
             s.prev.copy_from_slice(lambda);
@@ -114,14 +114,11 @@ pub fn solve_until(
             // the next one (a trial that enumerated in every step took 161
             // LUs on a recorded 335-contact jam problem that needs 16 without).
             s.subspace.enumerate = subspace_gap == 2;
-            // Each step damps its Newton steps by the next shift in turn; an
-            // LU kept for reuse was made with the shift of its own step.
-            let shift = subspace::NEWTON_SHIFTS[attempts % subspace::NEWTON_SHIFTS.len()];
-            if shift != s.subspace.shift {
-                s.subspace.forget();
-            }
-            s.subspace.shift = shift;
-            attempts += 1;
+            // The solve's `k`-th step (the gap doubles after each) damps its
+            // Newton steps by the `k`-th shift, in turn.
+            let k = subspace_gap.trailing_zeros() as usize;
+            let shifts = subspace::NEWTON_SHIFTS;
+            s.subspace.set_shift(shifts[k % shifts.len()]);
             let kept = subspace::step(
                 w,
                 delta0,

@@ -162,8 +162,8 @@ pub(super) struct SubspaceScratch {
     /// Whether a cycling step may enumerate the toggling contacts' classes.
     pub(super) enumerate: bool,
     /// The relative diagonal shift of this step's Newton matrices (one of
-    /// [`NEWTON_SHIFTS`]).
-    pub(super) shift: f64,
+    /// [`NEWTON_SHIFTS`], see [`Self::set_shift`]).
+    shift: f64,
     /// The Newton matrix (column-major), then its LU factors.
     mat: Vec<f64>,
     /// Right-hand side, then the step.
@@ -187,6 +187,15 @@ impl SubspaceScratch {
     /// Drops the LU factors a step could start from.
     pub(super) fn forget(&mut self) {
         self.lu_free.clear();
+    }
+
+    /// Sets the next step's shift (one of [`NEWTON_SHIFTS`]); an LU kept for
+    /// reuse was made with its own step's shift, so a new one drops it.
+    pub(super) fn set_shift(&mut self, shift: f64) {
+        if shift != self.shift {
+            self.forget();
+        }
+        self.shift = shift;
     }
 }
 
