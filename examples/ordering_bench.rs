@@ -1,9 +1,11 @@
 //! The two fill-reducing orderings of the `LDLᵀ` factor side by side
 //! (`solver::ordering`): on the lens at growing resolutions and on the two
 //! bodies of the cataract scene, the factor's size, the operations of a
-//! factorization (`Σ c_j²`), one factorization and one forward plus backward
-//! solve (median of 3), and the mean elimination-tree path of a node (what a
-//! contact column of the compliance costs). `Auto` keeps the cheaper.
+//! factorization (`Σ c_j²`), one factorization (median of 3), one solve
+//! with `L` in double and in single precision (the preconditioner's,
+//! `LdltFactor::solve_single`; median of 3 batches of 20), and the mean
+//! elimination-tree path of a node (what a contact column of the compliance
+//! costs). `Auto` keeps the cheaper.
 //!
 //! ```text
 //! cargo run --release --example ordering_bench
@@ -45,12 +47,24 @@ fn report(name: &str, body: &mut DeformableBody) -> Result<()> {
         let mut f = sym.alloc_factor();
         let mut work = Vec::new();
         let factor = ms(&mut || sym.factorize(a, &mut f, &mut work))?;
-        let mut y = vec![Vec3::zeros(); sym.n];
+        let b: Vec<Vec3> = (0..sym.n)
+            .map(|i| v3((i as f64).sin(), 1.0, (i as f64 * 0.3).cos()))
+            .collect();
+        let (mut x, mut tmp) = (vec![Vec3::zeros(); sym.n], vec![Vec3::zeros(); sym.n]);
+        let batch = 20;
         let solve = ms(&mut || {
-            f.forward(&mut y);
-            f.backward(&mut y);
+            for _ in 0..batch {
+                f.solve(&b, &mut x, &mut tmp);
+            }
             Ok(())
-        })?;
+        })? / batch as f64;
+        f.round_to_single();
+        let single = ms(&mut || {
+            for _ in 0..batch {
+                f.solve_single(&b, &mut x, &mut tmp);
+            }
+            Ok(())
+        })? / batch as f64;
         let mut path = 0usize;
         for k in 0..sym.n {
             let mut j = k;
@@ -60,13 +74,14 @@ fn report(name: &str, body: &mut DeformableBody) -> Result<()> {
             }
         }
         println!(
-            "{name:>12} {:>6} {:>18} {:>9} {:>9.2e} {:>10.1} {:>8.2} {:>6.0}{}",
+            "{name:>12} {:>6} {:>18} {:>9} {:>9.2e} {:>10.1} {:>8.2} {:>9.2} {:>6.0}{}",
             sym.n,
             format!("{which:?}"),
             nnz,
             flops,
             factor,
             solve,
+            single,
             path as f64 / sym.n as f64,
             if p == auto { "  (Auto)" } else { "" }
         );
@@ -76,8 +91,16 @@ fn report(name: &str, body: &mut DeformableBody) -> Result<()> {
 
 fn main() -> Result<()> {
     println!(
-        "{:>12} {:>6} {:>18} {:>9} {:>9} {:>10} {:>8} {:>6}",
-        "mesh", "nodes", "ordering", "L blocks", "flops", "factor ms", "solve ms", "path"
+        "{:>12} {:>6} {:>18} {:>9} {:>9} {:>10} {:>8} {:>9} {:>6}",
+        "mesh",
+        "nodes",
+        "ordering",
+        "L blocks",
+        "flops",
+        "factor ms",
+        "solve ms",
+        "f32 solve",
+        "path"
     );
     for cells in [10, 14, 20, 26, 31] {
         let mesh = generate::ellipsoid(LENS_RADII, cells)?;

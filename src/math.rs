@@ -283,6 +283,26 @@ pub(crate) mod x86 {
         _mm256_fmadd_pd(c[2], _mm256_set1_pd(x.z), acc)
     }
 
+    /// The three columns of a column-major 3×3 block of `f32` at `p`,
+    /// widened to `f64`, each in lanes 0–2 with lane 3 zero.
+    ///
+    /// # Safety
+    /// `p..p + 10` must be readable (the last column's four-lane load reads
+    /// one entry past the block).
+    #[inline]
+    #[target_feature(enable = "avx2,fma")]
+    pub(crate) unsafe fn columns_f32(p: *const f32) -> [__m256d; 3] {
+        let zero = _mm256_setzero_pd();
+        // SAFETY: the caller guarantees ten readable entries.
+        unsafe {
+            [
+                _mm256_blend_pd(_mm256_cvtps_pd(_mm_loadu_ps(p)), zero, 0b1000),
+                _mm256_blend_pd(_mm256_cvtps_pd(_mm_loadu_ps(p.add(3))), zero, 0b1000),
+                _mm256_blend_pd(_mm256_cvtps_pd(_mm_loadu_ps(p.add(6))), zero, 0b1000),
+            ]
+        }
+    }
+
     /// The sum of the four lanes.
     #[inline]
     #[target_feature(enable = "avx2,fma")]

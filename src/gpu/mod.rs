@@ -321,10 +321,18 @@ impl GpuCompliance {
         let device = self.device.wgpu_device();
         let col_ptr: Vec<u32> = s.col_ptr.iter().map(|&x| x as u32).collect();
         let row_idx: Vec<u32> = s.row_idx.iter().map(|&x| x as u32).collect();
-        let lvals: Vec<f32> =
-            f.l.iter()
-                .flat_map(|m| m.iter().map(|&x| x as f32))
-                .collect();
+        // The preconditioner's single-precision copy where the factor has one.
+        let rounded: Vec<f32>;
+        let lvals: &[f32] = match f.l_single() {
+            Some(l) => l,
+            None => {
+                rounded =
+                    f.l.iter()
+                        .flat_map(|m| m.iter().map(|&x| x as f32))
+                        .collect();
+                &rounded
+            }
+        };
         let ldiag: Vec<f32> = f.ldiag.iter().flat_map(|d| d.map(|x| x as f32)).collect();
         let dinv: Vec<f32> =
             f.d.iter()
@@ -335,7 +343,7 @@ impl GpuCompliance {
             n: s.n as u32,
             col_ptr: storage(device, "col_ptr", bytemuck::cast_slice(&col_ptr)),
             row_idx: storage(device, "row_idx", bytemuck::cast_slice(&row_idx)),
-            lvals: storage(device, "lvals", bytemuck::cast_slice(&lvals)),
+            lvals: storage(device, "lvals", bytemuck::cast_slice(lvals)),
             ldiag: storage(device, "ldiag", bytemuck::cast_slice(&ldiag)),
             dinv: storage(device, "dinv", bytemuck::cast_slice(&dinv)),
         };

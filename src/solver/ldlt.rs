@@ -73,6 +73,13 @@ pub struct LdltFactor {
     pub ldiag: Vec<[f64; 3]>,
     /// Pivots of `D` per node.
     pub d: Vec<Vec3>,
+    /// `l` rounded to `f32` for [`Self::solve_single`]: nine entries per
+    /// block, column-major, then three of padding (the kernels' four-lane
+    /// loads read one entry past a block). Made by [`Self::round_to_single`];
+    /// valid while `single` is set.
+    l32: Vec<f32>,
+    /// Whether `l32` holds the rounded `l` (cleared by each factorization).
+    single: bool,
 }
 
 impl LdltSymbolic {
@@ -181,6 +188,8 @@ impl LdltSymbolic {
             l: vec![Mat3::zeros(); self.nnz_blocks()],
             ldiag: vec![[0.0; 3]; self.n],
             d: vec![Vec3::zeros(); self.n],
+            l32: Vec::new(),
+            single: false,
         }
     }
 
@@ -193,6 +202,7 @@ impl LdltSymbolic {
         work: &mut Vec<Mat3>,
     ) -> Result<()> {
         let n = self.n;
+        out.single = false;
         work.clear();
         work.resize(n, Mat3::zeros());
         let y = work;
@@ -248,21 +258,88 @@ impl LdltSymbolic {
 impl LdltFactor {
     /// Forward solve `L y = y` in permuted numbering, in place.
     pub fn forward(&self, y: &mut [Vec3]) {
+        self.forward_with::<false>(y);
+    }
+
+    /// Backward solve `Lᵀ y = y` in permuted numbering, in place.
+    pub fn backward(&self, y: &mut [Vec3]) {
+        self.backward_with::<false>(y);
+    }
+
+    /// [`Self::forward`] with `L` in double (`SINGLE = false`) or single
+    /// precision (`l32`, which the caller has checked is valid).
+    fn forward_with<const SINGLE: bool>(&self, y: &mut [Vec3]) {
         #[cfg(target_arch = "x86_64")]
         if has_avx2_fma() {
             // SAFETY: the CPU supports the features the function is compiled for.
-            return unsafe { self.forward_avx2(y) };
+            return unsafe { self.forward_avx2::<SINGLE>(y) };
         }
-        self.forward_portable(y);
+        self.forward_portable::<SINGLE>(y);
     }
 
-    fn forward_portable(&self, y: &mut [Vec3]) {
+    /// [`Self::backward`] with `L` in double or single precision (see
+    /// [`Self::forward_with`]).
+    fn backward_with<const SINGLE: bool>(&self, y: &mut [Vec3]) {
+        #[cfg(target_arch = "x86_64")]
+        if has_avx2_fma() {
+            // SAFETY: the CPU supports the features the function is compiled for.
+            return unsafe { self.backward_avx2::<SINGLE>(y) };
+        }
+        self.backward_portable::<SINGLE>(y);
+    }
+
+    /// Block `p` of `L`, from `l` or from its single-precision copy.
+    #[inline(always)]
+    fn block<const SINGLE: bool>(&self, p: usize) -> Mat3 {
+        if SINGLE {
+            Mat3::from_fn(|r, c| f64::from(self.l32[9 * p + 3 * c + r]))
+        } else {
+            self.l[p]
+        }
+    }
+
+    /// The three columns of block `p` of `L` (lanes 0–2, lane 3 zero), from
+    /// `l` or from its single-precision copy.
+    ///
+    /// # Safety
+    /// With `SINGLE`, `l32` must hold `9 (p + 1) + 3` entries or more
+    /// ([`Self::check_single`]).
+    #[cfg(target_arch = "x86_64")]
+    #[inline]
+    #[target_feature(enable = "avx2,fma")]
+    unsafe fn block_columns<const SINGLE: bool>(
+        &self,
+        p: usize,
+    ) -> [std::arch::x86_64::__m256d; 3] {
+        if SINGLE {
+            // SAFETY: the caller guarantees the entries the three four-lane
+            // loads read, 9p..9p + 10 (the last one is the next block's, or
+            // padding).
+            unsafe { x86::columns_f32(self.l32.as_ptr().add(9 * p)) }
+        } else {
+            x86::columns(&self.l[p])
+        }
+    }
+
+    /// With `SINGLE`, checks that `l32` covers every block of `L` with its
+    /// padding, what [`Self::block_columns`] needs for any block.
+    #[inline]
+    fn check_single<const SINGLE: bool>(&self) {
+        if SINGLE {
+            assert!(
+                self.l32.len() >= 9 * self.l.len() + 3,
+                "no single-precision copy of L"
+            );
+        }
+    }
+
+    fn forward_portable<const SINGLE: bool>(&self, y: &mut [Vec3]) {
         let s = &*self.symbolic;
         for j in 0..s.n {
             let yj = unit_lower_solve(&self.ldiag[j], &y[j]);
             y[j] = yj;
             for p in s.col_ptr[j]..s.col_ptr[j + 1] {
-                y[s.row_idx[p]] -= self.l[p] * yj;
+                y[s.row_idx[p]] -= self.block::<SINGLE>(p) * yj;
             }
         }
     }
@@ -271,9 +348,10 @@ impl LdltFactor {
     /// multiply-adds of `L_p`'s columns with broadcast entries of `y_j`.
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2,fma")]
-    fn forward_avx2(&self, y: &mut [Vec3]) {
+    fn forward_avx2<const SINGLE: bool>(&self, y: &mut [Vec3]) {
         use std::arch::x86_64::*;
         let s = &*self.symbolic;
+        self.check_single::<SINGLE>();
         for j in 0..s.n {
             let yj = unit_lower_solve(&self.ldiag[j], &y[j]);
             y[j] = yj;
@@ -283,8 +361,9 @@ impl LdltFactor {
                 _mm256_set1_pd(yj.z),
             ];
             let range = s.col_ptr[j]..s.col_ptr[j + 1];
-            for (lp, &r) in self.l[range.clone()].iter().zip(&s.row_idx[range]) {
-                let lc = x86::columns(lp);
+            for (p, &r) in range.clone().zip(&s.row_idx[range]) {
+                // SAFETY: checked before the loop (`p` is a block of `L`).
+                let lc = unsafe { self.block_columns::<SINGLE>(p) };
                 let mut acc = x86::load3(&y[r]);
                 for k in 0..3 {
                     acc = _mm256_fnmadd_pd(lc[k], b[k], acc);
@@ -294,22 +373,12 @@ impl LdltFactor {
         }
     }
 
-    /// Backward solve `Lᵀ y = y` in permuted numbering, in place.
-    pub fn backward(&self, y: &mut [Vec3]) {
-        #[cfg(target_arch = "x86_64")]
-        if has_avx2_fma() {
-            // SAFETY: the CPU supports the features the function is compiled for.
-            return unsafe { self.backward_avx2(y) };
-        }
-        self.backward_portable(y);
-    }
-
-    fn backward_portable(&self, y: &mut [Vec3]) {
+    fn backward_portable<const SINGLE: bool>(&self, y: &mut [Vec3]) {
         let s = &*self.symbolic;
         for j in (0..s.n).rev() {
             let mut acc = y[j];
             for p in s.col_ptr[j]..s.col_ptr[j + 1] {
-                acc -= self.l[p].transpose() * y[s.row_idx[p]];
+                acc -= self.block::<SINGLE>(p).transpose() * y[s.row_idx[p]];
             }
             y[j] = unit_lower_t_solve(&self.ldiag[j], &acc);
         }
@@ -322,17 +391,24 @@ impl LdltFactor {
     /// multiply-adds do not wait on each other's latency.
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2,fma")]
-    fn backward_avx2(&self, y: &mut [Vec3]) {
+    fn backward_avx2<const SINGLE: bool>(&self, y: &mut [Vec3]) {
         use std::arch::x86_64::*;
         let s = &*self.symbolic;
+        self.check_single::<SINGLE>();
         for j in (0..s.n).rev() {
             let mut acc = [_mm256_setzero_pd(); 3];
             let mut acc2 = [_mm256_setzero_pd(); 3];
-            let range = s.col_ptr[j]..s.col_ptr[j + 1];
-            let (l, rows) = (&self.l[range.clone()], &s.row_idx[range]);
-            let pairs = l.len() / 2;
-            for t in 0..pairs {
-                let (la, lb) = (x86::columns(&l[2 * t]), x86::columns(&l[2 * t + 1]));
+            let (start, end) = (s.col_ptr[j], s.col_ptr[j + 1]);
+            let rows = &s.row_idx[start..end];
+            let len = end - start;
+            for t in 0..len / 2 {
+                // SAFETY: checked before the loop (blocks of `L`).
+                let (la, lb) = unsafe {
+                    (
+                        self.block_columns::<SINGLE>(start + 2 * t),
+                        self.block_columns::<SINGLE>(start + 2 * t + 1),
+                    )
+                };
                 let va = x86::load3(&y[rows[2 * t]]);
                 let vb = x86::load3(&y[rows[2 * t + 1]]);
                 for k in 0..3 {
@@ -340,9 +416,10 @@ impl LdltFactor {
                     acc2[k] = _mm256_fmadd_pd(lb[k], vb, acc2[k]);
                 }
             }
-            if l.len() % 2 == 1 {
-                let lc = x86::columns(&l[l.len() - 1]);
-                let v = x86::load3(&y[rows[l.len() - 1]]);
+            if len % 2 == 1 {
+                // SAFETY: checked before the loop (a block of `L`).
+                let lc = unsafe { self.block_columns::<SINGLE>(end - 1) };
+                let v = x86::load3(&y[rows[len - 1]]);
                 for k in 0..3 {
                     acc[k] = _mm256_fmadd_pd(lc[k], v, acc[k]);
                 }
@@ -356,17 +433,86 @@ impl LdltFactor {
         }
     }
 
+    /// Rounds `L` to single precision for [`Self::solve_single`]; the copy
+    /// holds until the next factorization into this factor, and must be made
+    /// again after `l` is changed by hand. Entries below `f32`'s smallest
+    /// normal number become zero. Returns whether the copy was made: an entry
+    /// too large for `f32` leaves the factor without one (and
+    /// [`Self::solve_single`] solves in double precision). Allocates on the
+    /// first call only.
+    pub fn round_to_single(&mut self) -> bool {
+        self.single = false;
+        let len = 9 * self.l.len() + 3;
+        if self.l32.len() != len {
+            self.l32.clear();
+            self.l32.resize(len, 0.0);
+        }
+        for (dst, b) in self.l32.chunks_exact_mut(9).zip(&self.l) {
+            for (d, &v) in dst.iter_mut().zip(b.as_slice()) {
+                if v.abs() > f64::from(f32::MAX) || !v.is_finite() {
+                    return false;
+                }
+                *d = if v.abs() < f64::from(f32::MIN_POSITIVE) {
+                    0.0
+                } else {
+                    v as f32
+                };
+            }
+        }
+        self.single = true;
+        true
+    }
+
+    /// Whether a single-precision copy of `L` is in place (see
+    /// [`Self::round_to_single`]).
+    pub fn has_single(&self) -> bool {
+        self.single
+    }
+
+    /// The single-precision copy of `L` (nine entries per block, column-major,
+    /// laid out like [`Self::l`]), when there is one ([`Self::round_to_single`]).
+    pub fn l_single(&self) -> Option<&[f32]> {
+        self.single.then(|| &self.l32[..9 * self.l.len()])
+    }
+
+    /// Copies the values of `other` (a factor of the same structure) into
+    /// this one, without a single-precision copy.
+    pub fn copy_values_from(&mut self, other: &LdltFactor) {
+        self.l.copy_from_slice(&other.l);
+        self.ldiag.copy_from_slice(&other.ldiag);
+        self.d.copy_from_slice(&other.d);
+        self.single = false;
+    }
+
+    /// Solves `(L̃ D L̃ᵀ) x = b` like [`Self::solve`], with `L̃` the
+    /// single-precision copy of `L` when there is one ([`Self::round_to_single`];
+    /// otherwise this is [`Self::solve`]). `L̃ D L̃ᵀ` is symmetric positive
+    /// definite like `L D Lᵀ` and within `f32` round-off of it: a
+    /// preconditioner reads half the memory per solve. Arithmetic, `D` and the
+    /// diagonal blocks stay in double precision.
+    pub fn solve_single(&self, b: &[Vec3], x: &mut [Vec3], tmp: &mut [Vec3]) {
+        if self.single {
+            self.solve_with::<true>(b, x, tmp);
+        } else {
+            self.solve_with::<false>(b, x, tmp);
+        }
+    }
+
     /// Solves `(L D Lᵀ) x = b` in original numbering; `tmp` is scratch of length `n`.
     pub fn solve(&self, b: &[Vec3], x: &mut [Vec3], tmp: &mut [Vec3]) {
+        self.solve_with::<false>(b, x, tmp);
+    }
+
+    fn solve_with<const SINGLE: bool>(&self, b: &[Vec3], x: &mut [Vec3], tmp: &mut [Vec3]) {
         let s = &*self.symbolic;
         for k in 0..s.n {
             tmp[k] = b[s.perm[k]];
         }
-        self.forward(tmp);
+        self.forward_with::<SINGLE>(tmp);
         for k in 0..s.n {
             tmp[k] = tmp[k].component_div(&self.d[k]);
         }
-        self.backward(tmp);
+        self.backward_with::<SINGLE>(tmp);
         for k in 0..s.n {
             x[s.perm[k]] = tmp[k];
         }
@@ -642,8 +788,8 @@ mod tests {
             .map(|i| Vec3::new(val(3 * i + 1000), val(3 * i + 1001), val(3 * i + 1002)))
             .collect();
         let (mut fp, mut bp) = (y0.clone(), y0.clone());
-        f.forward_portable(&mut fp);
-        f.backward_portable(&mut bp);
+        f.forward_portable::<false>(&mut fp);
+        f.backward_portable::<false>(&mut bp);
         let (mut ff, mut bf) = (y0.clone(), y0.clone());
         f.forward(&mut ff);
         f.backward(&mut bf);
@@ -652,6 +798,93 @@ mod tests {
         }
         // The solves did something.
         assert!(fp.iter().zip(&y0).any(|(a, b)| (a - b).norm() > 1e-3));
+    }
+
+    /// The single-precision solves: the AVX2/FMA kernels (where the CPU has
+    /// them) match the portable ones on the same rounded blocks; the solve
+    /// differs from the double-precision one by `f32` round-off only; a new
+    /// factorization or a value too large for `f32` drops the copy, and the
+    /// solve is then the double-precision one.
+    #[test]
+    fn single_precision_solves() {
+        let (sym, mut f) = arbitrary_factor([2, 2, 4]);
+        let n = sym.n;
+        let y0: Vec<Vec3> = (0..n)
+            .map(|i| Vec3::new(val(3 * i + 1000), val(3 * i + 1001), val(3 * i + 1002)))
+            .collect();
+        assert!(!f.has_single() && f.l_single().is_none());
+        assert!(f.round_to_single());
+        assert!(f.has_single());
+        let l32 = f.l_single().unwrap();
+        assert_eq!(l32.len(), 9 * f.l.len());
+        for (p, b) in f.l.iter().enumerate() {
+            for (i, &v) in b.as_slice().iter().enumerate() {
+                assert_eq!(l32[9 * p + i], v as f32);
+            }
+        }
+        for forward in [true, false] {
+            let (mut portable, mut fast, mut double) = (y0.clone(), y0.clone(), y0.clone());
+            if forward {
+                f.forward_portable::<true>(&mut portable);
+                f.forward_with::<true>(&mut fast);
+                f.forward(&mut double);
+            } else {
+                f.backward_portable::<true>(&mut portable);
+                f.backward_with::<true>(&mut fast);
+                f.backward(&mut double);
+            }
+            let scale = double.iter().map(|v| v.norm()).fold(1.0, f64::max);
+            for (a, b) in portable.iter().zip(&fast) {
+                assert!((a - b).norm() <= 1e-12 * (1.0 + b.norm()), "{a} vs {b}");
+            }
+            // f32 keeps 24 bits: each block is within 2⁻²⁴ of its f64 value,
+            // and the sweeps add up at most `n` such terms per entry.
+            let worst = fast
+                .iter()
+                .zip(&double)
+                .map(|(a, b)| (a - b).norm())
+                .fold(0.0, f64::max);
+            assert!(worst <= n as f64 * 2f64.powi(-24) * scale, "{worst:e}");
+            // ... and rounding did happen: the kernels read the f32 copy.
+            assert!(worst > 0.0);
+        }
+        let (mut x, mut xs, mut tmp) = (y0.clone(), y0.clone(), y0.clone());
+        f.solve(&y0, &mut x, &mut tmp);
+        f.solve_single(&y0, &mut xs, &mut tmp);
+        assert!(x != xs);
+        // Too large for f32: no copy, and the double-precision solve.
+        f.l[3][(1, 2)] = 1e39;
+        assert!(!f.round_to_single());
+        assert!(!f.has_single());
+        f.solve(&y0, &mut x, &mut tmp);
+        f.solve_single(&y0, &mut xs, &mut tmp);
+        assert_eq!(x, xs);
+        // Copying values drops the copy too.
+        f.l[3][(1, 2)] = 0.25;
+        assert!(f.round_to_single());
+        let other = f.clone();
+        f.copy_values_from(&other);
+        assert!(!f.has_single());
+    }
+
+    /// Factorizing drops the single-precision copy of the previous values.
+    #[test]
+    fn factorizing_drops_the_single_copy() {
+        let mesh =
+            crate::mesh::generate::box_mesh(Vec3::zeros(), Vec3::new(1.0, 1.0, 1.0), [2, 2, 2])
+                .unwrap();
+        let pattern = BlockPattern::new(mesh.num_vertices(), mesh.tets());
+        let sym = Arc::new(LdltSymbolic::new(&pattern).unwrap());
+        let pattern = Arc::new(pattern);
+        let mut a = crate::fem::assembly::BlockCsr::zeros(Arc::clone(&pattern));
+        for i in 0..a.n() {
+            a.values[pattern.diag[i]] = Mat3::identity() * 4.0;
+        }
+        let mut f = sym.alloc_factor();
+        sym.factorize(&a, &mut f, &mut Vec::new()).unwrap();
+        assert!(f.round_to_single());
+        sym.factorize(&a, &mut f, &mut Vec::new()).unwrap();
+        assert!(!f.has_single());
     }
 
     /// Solving several right-hand sides at once gives what solving each gives.

@@ -138,6 +138,11 @@ impl AsyncFactorizer {
                             std::thread::sleep(std::time::Duration::from_micros(us));
                         }
                         let result = sym.factorize(&mat, &mut job.factor, &mut work);
+                        if result.is_ok() {
+                            // The preconditioner solves with `L` in single
+                            // precision (see the module docs of `super`).
+                            job.factor.round_to_single();
+                        }
                         // The compliance's node columns of the new factor, here
                         // rather than on the stepping thread.
                         // (A job carries a cache only when it has a hint.)

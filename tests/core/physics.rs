@@ -135,6 +135,9 @@ fn exact_ldlt_converges_in_at_most_two_iterations() {
         let r = body.step(0.01).unwrap();
         assert!(r.cg.converged && r.cg.iterations <= 2, "{:?}", r.cg);
     }
+    // The reference solves in double precision.
+    let st = body.preconditioner().factor_state().unwrap();
+    assert!(!st.factor.has_single());
 }
 
 /// CG iterations per preconditioner on a pressed, twisted lens. The paper's
@@ -507,6 +510,10 @@ fn async_factor_is_refreshed_and_used() {
     let r = body.report();
     assert!(r.preconditioner.refreshes >= 3, "{:?}", r.preconditioner);
     assert_eq!(r.preconditioner.failures, 0);
+    // The worker's factors come with their single-precision copy, which the
+    // preconditioner's solves use.
+    let st = body.preconditioner().factor_state().unwrap();
+    assert!(st.version >= 2 && st.factor.has_single());
 }
 
 #[test]

@@ -177,9 +177,7 @@ impl FactorSource {
         if stale {
             match &mut snap.factor {
                 Some(f) if Arc::ptr_eq(&f.symbolic, &st.factor.symbolic) => {
-                    f.l.copy_from_slice(&st.factor.l);
-                    f.ldiag.copy_from_slice(&st.factor.ldiag);
-                    f.d.copy_from_slice(&st.factor.d);
+                    f.copy_values_from(&st.factor);
                 }
                 _ => snap.factor = Some(st.factor.clone()),
             }
