@@ -76,10 +76,9 @@ pub struct LdltFactor {
     /// `l` rounded to `f32` for [`Self::solve_single`]: nine entries per
     /// block, column-major, then three of padding (the kernels' four-lane
     /// loads read one entry past a block). Made by [`Self::round_to_single`];
-    /// valid while `single` is set.
+    /// empty when there is no copy (each factorization empties it, keeping
+    /// its capacity).
     l32: Vec<f32>,
-    /// Whether `l32` holds the rounded `l` (cleared by each factorization).
-    single: bool,
 }
 
 impl LdltSymbolic {
@@ -189,7 +188,6 @@ impl LdltSymbolic {
             ldiag: vec![[0.0; 3]; self.n],
             d: vec![Vec3::zeros(); self.n],
             l32: Vec::new(),
-            single: false,
         }
     }
 
@@ -202,7 +200,7 @@ impl LdltSymbolic {
         work: &mut Vec<Mat3>,
     ) -> Result<()> {
         let n = self.n;
-        out.single = false;
+        out.l32.clear();
         work.clear();
         work.resize(n, Mat3::zeros());
         let y = work;
@@ -267,7 +265,7 @@ impl LdltFactor {
     }
 
     /// [`Self::forward`] with `L` in double (`SINGLE = false`) or single
-    /// precision (`l32`, which the caller has checked is valid).
+    /// precision (`l32`, which must hold the copy).
     fn forward_with<const SINGLE: bool>(&self, y: &mut [Vec3]) {
         #[cfg(target_arch = "x86_64")]
         if has_avx2_fma() {
@@ -441,38 +439,33 @@ impl LdltFactor {
     /// [`Self::solve_single`] solves in double precision). Allocates on the
     /// first call only.
     pub fn round_to_single(&mut self) -> bool {
-        self.single = false;
-        let len = 9 * self.l.len() + 3;
-        if self.l32.len() != len {
-            self.l32.clear();
-            self.l32.resize(len, 0.0);
-        }
-        for (dst, b) in self.l32.chunks_exact_mut(9).zip(&self.l) {
-            for (d, &v) in dst.iter_mut().zip(b.as_slice()) {
-                if v.abs() > f64::from(f32::MAX) || !v.is_finite() {
-                    return false;
-                }
-                *d = if v.abs() < f64::from(f32::MIN_POSITIVE) {
-                    0.0
-                } else {
-                    v as f32
-                };
+        self.l32.clear();
+        self.l32.reserve_exact(9 * self.l.len() + 3);
+        for &v in self.l.iter().flat_map(|b| b.as_slice()) {
+            if v.abs() > f64::from(f32::MAX) || !v.is_finite() {
+                self.l32.clear();
+                return false;
             }
+            self.l32.push(if v.abs() < f64::from(f32::MIN_POSITIVE) {
+                0.0
+            } else {
+                v as f32
+            });
         }
-        self.single = true;
+        self.l32.extend_from_slice(&[0.0; 3]);
         true
     }
 
     /// Whether a single-precision copy of `L` is in place (see
     /// [`Self::round_to_single`]).
     pub fn has_single(&self) -> bool {
-        self.single
+        !self.l32.is_empty()
     }
 
     /// The single-precision copy of `L` (nine entries per block, column-major,
     /// laid out like [`Self::l`]), when there is one ([`Self::round_to_single`]).
     pub fn l_single(&self) -> Option<&[f32]> {
-        self.single.then(|| &self.l32[..9 * self.l.len()])
+        self.has_single().then(|| &self.l32[..9 * self.l.len()])
     }
 
     /// Copies the values of `other` (a factor of the same structure) into
@@ -481,7 +474,7 @@ impl LdltFactor {
         self.l.copy_from_slice(&other.l);
         self.ldiag.copy_from_slice(&other.ldiag);
         self.d.copy_from_slice(&other.d);
-        self.single = false;
+        self.l32.clear();
     }
 
     /// Solves `(L̃ D L̃ᵀ) x = b` like [`Self::solve`], with `L̃` the
@@ -491,7 +484,7 @@ impl LdltFactor {
     /// preconditioner reads half the memory per solve. Arithmetic, `D` and the
     /// diagonal blocks stay in double precision.
     pub fn solve_single(&self, b: &[Vec3], x: &mut [Vec3], tmp: &mut [Vec3]) {
-        if self.single {
+        if self.has_single() {
             self.solve_with::<true>(b, x, tmp);
         } else {
             self.solve_with::<false>(b, x, tmp);
