@@ -50,7 +50,7 @@ use std::process::ExitCode;
 use bevy_soft_tissue::body::BodySettings;
 use bevy_soft_tissue::contact::{ComplianceMode, LcpSolver};
 use bevy_soft_tissue::mesh::generate::LENS_RADII;
-use bevy_soft_tissue::plugin::SoftTissueConfig;
+use bevy_soft_tissue::plugin::{GpuMode, SoftTissueConfig};
 use bevy_soft_tissue::scenes::cataract::CataractParams;
 
 mod common;
@@ -115,6 +115,23 @@ struct Args {
     /// A simulated haptic device drives the vectis (window only).
     #[arg(long)]
     haptics: bool,
+    /// Where `W` is built: off (CPU), on (GPU whenever there are contacts)
+    /// or autoN (GPU from N constraint rows on). Needs the `gpu` feature and
+    /// a GPU adapter.
+    #[arg(long, default_value = "off", value_parser = gpu_mode)]
+    gpu: GpuMode,
+}
+
+fn gpu_mode(v: &str) -> Result<GpuMode, String> {
+    match v {
+        "off" => Ok(GpuMode::Off),
+        "on" => Ok(GpuMode::On),
+        _ => v
+            .strip_prefix("auto")
+            .and_then(|n| n.parse().ok())
+            .map(|min_rows| GpuMode::Auto { min_rows })
+            .ok_or_else(|| format!("unknown GPU mode `{v}` (off, on or autoN)")),
+    }
 }
 
 fn compliance(v: &str) -> Result<ComplianceMode, String> {
@@ -129,9 +146,10 @@ fn compliance(v: &str) -> Result<ComplianceMode, String> {
 }
 
 fn headless(args: &Args, params: &CataractParams, config: SoftTissueConfig) -> ExitCode {
+    let gpu = config.gpu;
     println!(
-        "cataract scene, headless: {} steps of {:.4} s, preconditioner {:?}, compliance {:?}",
-        args.steps, config.timestep, args.preconditioner, args.compliance
+        "cataract scene, headless: {} steps of {:.4} s, preconditioner {:?}, compliance {:?}, GPU {:?}",
+        args.steps, config.timestep, args.preconditioner, args.compliance, config.gpu
     );
     let body = BodySettings {
         preconditioner: args.preconditioner,
@@ -200,6 +218,19 @@ fn headless(args: &Args, params: &CataractParams, config: SoftTissueConfig) -> E
                 "factors refreshed by the contact phase's consistency checks: {}",
                 s.consistency_refactors
             );
+            if gpu != GpuMode::Off {
+                println!("GPU compliance dispatches: {}", s.gpu_dispatches);
+            }
+            if let Some((builds, uploads, up, wait, all)) = s.gpu {
+                let per = |t: f64, n: u64| t * 1e3 / n.max(1) as f64;
+                println!(
+                    "GPU compliance: {builds} builds, {:.3} ms each ({:.3} ms waiting for the device); \
+                     {uploads} factor uploads, {:.3} ms each",
+                    per(all, builds),
+                    per(wait, builds),
+                    per(up, uploads)
+                );
+            }
             if let Some(r) = &recording {
                 println!(
                     "contact problems with at least {} contacts written to {}: {}",
@@ -277,6 +308,7 @@ fn main() -> ExitCode {
         config.contact.energy_tolerance = t;
     }
     config.contact.lcp.solver = args.lcp;
+    config.gpu = args.gpu;
     if let Some(p) = args.passes {
         config.contact.max_passes = p.max(1);
     }

@@ -46,12 +46,13 @@ fn main() -> bevy_soft_tissue::error::Result<()> {
     let mut body = lens_with_factor(12)?;
     println!("compliance build time (ms, median of 5), friction on");
     println!(
-        "{:>8} {:>14} {:>10} {:>10}",
-        "contacts", "CPU Factorized", "GPU", "GPU/CPU"
+        "{:>8} {:>14} {:>10} {:>10} {:>10}",
+        "contacts", "CPU Factorized", "GPU", "GPU/CPU", "GPU wait"
     );
     for n in [30, 60, 90, 130, 260] {
         let cs = pole_contacts(&body, n, v3(0.0, 0.0, -1.0), 0.3);
         let (mut cpu_t, mut gpu_t) = (Vec::new(), Vec::new());
+        let (wait0, builds0) = (gpu.wait_seconds, gpu.dispatches / 3);
         for _ in 0..5 {
             // A new solver each time: no cached columns, W from the body's current factor.
             let build = |body: &mut DeformableBody,
@@ -71,7 +72,9 @@ fn main() -> bevy_soft_tissue::error::Result<()> {
             gpu_t.push(build(&mut body, Some(&mut gpu))?);
         }
         let (c, g) = (median(cpu_t), median(gpu_t));
-        println!("{n:>8} {c:>14.3} {g:>10.3} {:>10.2}", g / c);
+        // Mean time the stepping thread waited for the device per GPU build.
+        let wait = (gpu.wait_seconds - wait0) * 1e3 / (gpu.dispatches / 3 - builds0).max(1) as f64;
+        println!("{n:>8} {c:>14.3} {g:>10.3} {:>10.2} {wait:>10.3}", g / c);
     }
     Ok(())
 }

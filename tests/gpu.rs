@@ -106,6 +106,42 @@ fn gpu_w_matches_cpu_w_on_lens_with_90_friction_contacts() {
         .build_compliance(&mut [&mut body], PassKind::First, Some(&mut gpu))
         .unwrap();
     assert_eq!(gpu.uploads, 1);
+
+    // A new factor of another matrix (back at rest, and a timestep of 0.01:
+    // M + h²K mixes differently) goes into the same device buffers; W must
+    // follow it, not the first factor.
+    body.set_state(mesh.positions(), &vec![DVec3::zeros(); x.len()])
+        .unwrap();
+    body.step(0.01).unwrap();
+    assert!(body.refactor_preconditioner_now().unwrap());
+    assert!(!body.preconditioner().factor_state().unwrap().warped);
+    let contacts = pole_contacts(&body, 90, v3(0.0, 0.3, -1.0), 0.3);
+    let mut cpu = ContactSolver::new(ContactSettings::default()).unwrap();
+    cpu.set_contacts(&contacts, &[&body], 0.01).unwrap();
+    cpu.build_compliance(&mut [&mut body], PassKind::First, None)
+        .unwrap();
+    on_gpu.set_contacts(&contacts, &[&body], 0.01).unwrap();
+    on_gpu
+        .build_compliance(&mut [&mut body], PassKind::First, Some(&mut gpu))
+        .unwrap();
+    assert_eq!(gpu.uploads, 2);
+    let ((wc, m), (wg, m2)) = (cpu.delassus(), on_gpu.delassus());
+    assert_eq!(m, m2);
+    let scale = wc.iter().fold(0.0f64, |a, v| a.max(v.abs()));
+    let diff = wc
+        .iter()
+        .zip(wg)
+        .fold(0.0f64, |a, (p, q)| a.max((p - q).abs()));
+    println!(
+        "after a new factor: max |ΔW| / max |W| = {:.2e}",
+        diff / scale
+    );
+    assert!(
+        diff <= 1e-4 * scale,
+        "relative difference {:e} after a new factor",
+        diff / scale
+    );
+    assert!(gpu.wait_seconds > 0.0 && gpu.compute_seconds >= gpu.wait_seconds);
 }
 
 #[test]

@@ -9,7 +9,7 @@ use bevy_soft_tissue::body::BodySettings;
 use bevy_soft_tissue::contact::{ContactSolver, PassKind};
 use bevy_soft_tissue::error::{Result, SoftTissueError};
 use bevy_soft_tissue::plugin::{
-    SoftBody, SoftTissueConfig, SoftTissueContacts, SoftTissueDiagnostics, Tool,
+    GpuMode, SoftBody, SoftTissueConfig, SoftTissueContacts, SoftTissueDiagnostics, Tool,
 };
 use bevy_soft_tissue::scenes::cataract::{self, CataractParams};
 use bevy_soft_tissue::scenes::{CataractScenePlugin, Lens};
@@ -73,6 +73,11 @@ pub struct HeadlessSummary {
     pub consistency_refactors: u64,
     /// Contact problems written (see [`Recording`]).
     pub recorded: usize,
+    /// Compute dispatches of the GPU compliance (zero on the CPU path).
+    pub gpu_dispatches: u64,
+    /// The GPU compliance's counters at the end, when it ran: builds, factor
+    /// uploads, and seconds uploading, waiting for the device, and in all.
+    pub gpu: Option<(u64, u64, f64, f64, f64)>,
 }
 
 /// Where and from how many contacts the first-pass contact problems are
@@ -108,17 +113,31 @@ pub fn run_headless_recording(
 ) -> Result<HeadlessSummary> {
     let h = config.timestep;
     let mut app = App::new();
-    app.add_plugins((
-        MinimalPlugins,
-        SoftTissuePlugins::default().with_config(config),
-    ))
-    .add_plugins(CataractScenePlugin {
-        params: params.clone(),
-        body,
-    })
-    .insert_resource(bevy::time::TimeUpdateStrategy::ManualDuration(
-        Duration::from_secs_f64(h),
-    ));
+    // The GPU path needs a render device: a windowless render app (which
+    // brings the minimal plugins with it).
+    let gpu = config.gpu != GpuMode::Off;
+    if gpu {
+        #[cfg(feature = "gpu")]
+        bevy_soft_tissue::gpu::add_headless_render(&mut app, None)?;
+        #[cfg(not(feature = "gpu"))]
+        return Err(SoftTissueError::Gpu(
+            "GpuMode other than Off needs the `gpu` feature".into(),
+        ));
+    } else {
+        app.add_plugins(MinimalPlugins);
+    }
+    app.add_plugins(SoftTissuePlugins::default().with_config(config))
+        .add_plugins(CataractScenePlugin {
+            params: params.clone(),
+            body,
+        })
+        .insert_resource(bevy::time::TimeUpdateStrategy::ManualDuration(
+            Duration::from_secs_f64(h),
+        ));
+    if gpu {
+        app.finish();
+        app.cleanup();
+    }
     app.update();
     if let Some(r) = recording {
         std::fs::create_dir_all(&r.dir).map_err(|e| SoftTissueError::Io {
@@ -318,6 +337,32 @@ pub fn run_headless_recording(
             .resource::<SoftTissueDiagnostics>()
             .consistency_refactors,
         recorded,
+        gpu_dispatches: app
+            .world()
+            .resource::<SoftTissueDiagnostics>()
+            .gpu_dispatches,
+        gpu: gpu_counters(&app),
     };
     Ok(summary)
+}
+
+#[cfg(feature = "gpu")]
+fn gpu_counters(app: &App) -> Option<(u64, u64, f64, f64, f64)> {
+    app.world()
+        .get_resource::<bevy_soft_tissue::plugin::GpuBackend>()
+        .map(|g| {
+            let g = &g.0;
+            (
+                g.dispatches / 3,
+                g.uploads,
+                g.upload_seconds,
+                g.wait_seconds,
+                g.compute_seconds,
+            )
+        })
+}
+
+#[cfg(not(feature = "gpu"))]
+fn gpu_counters(_: &App) -> Option<(u64, u64, f64, f64, f64)> {
+    None
 }

@@ -5,7 +5,10 @@
 //! [`ComplianceMode::Factorized`](crate::contact::ComplianceMode::Factorized):
 //!
 //! - the body's `L` factor (3×3 node blocks, unit diagonal blocks, `D⁻¹`) is
-//!   converted to `f32` and uploaded once per factor version, not every step;
+//!   converted to `f32` (or taken from the preconditioner's `f32` copy) and
+//!   written once per factor version, not every step, into device buffers
+//!   the body keeps across versions; the symbolic arrays are written again
+//!   only when the symbolic factorization changes;
 //! - every step the contact nodes' elimination-tree paths and the Jacobian
 //!   entries `j = Qᵀ h` (already in the factor's frame) are uploaded;
 //! - `shaders/compliance.wgsl` runs three dispatches: one workgroup per contact
@@ -24,15 +27,25 @@
 //! so a step allocates nothing once the largest contact set has been seen.
 //! Which bodies use the GPU is [`GpuCompliance::min_rows`] (the plugin sets it
 //! from its `GpuMode`).
+//!
+//! [`GpuCompliance::wait_seconds`] and its siblings count where the time goes.
+//! The stepping thread waits for each build: on an NVIDIA H200 about 2 ms per
+//! build of the 1 183-node lens whatever the contact count, and about 6 ms per
+//! build in the cataract scene, where nearly every build also carries a new
+//! factor. The forward kernel is latency-bound: one workgroup walks a node's
+//! path level by level, with a barrier per level. See
+//! [`GpuMode`](crate::plugin::GpuMode) for what that
+//! means for the crossover.
 
 use std::collections::HashMap;
+use std::sync::Arc;
+use std::time::Instant;
 
 use bevy::render::renderer::{RenderDevice, RenderQueue};
-use wgpu::util::DeviceExt;
 
 use crate::contact::{ComplianceBackend, FactorKey, JacEntry};
 use crate::error::{Result, SoftTissueError};
-use crate::solver::ldlt::{LdltFactor, NONE};
+use crate::solver::ldlt::{LdltFactor, LdltSymbolic, NONE};
 
 /// The wgpu backends a render app tries: `backends`, or without it Bevy's
 /// own choice (`WGPU_BACKEND` from the environment, else all).
@@ -116,14 +129,21 @@ struct Pipelines {
     contract: wgpu::ComputePipeline,
 }
 
+/// A body's factor on the device. The buffers persist across factor versions
+/// and grow only when a factor needs more; the symbolic arrays are written
+/// again only when the symbolic factorization changes.
 struct UploadedFactor {
     key: FactorKey,
+    symbolic: Option<Arc<LdltSymbolic>>,
     n: u32,
-    col_ptr: wgpu::Buffer,
-    row_idx: wgpu::Buffer,
-    lvals: wgpu::Buffer,
-    ldiag: wgpu::Buffer,
-    dinv: wgpu::Buffer,
+    col_ptr: GrowBuffer,
+    row_idx: GrowBuffer,
+    lvals: GrowBuffer,
+    ldiag: GrowBuffer,
+    dinv: GrowBuffer,
+    /// Host staging of the `f32` conversions, kept between versions.
+    host_u32: Vec<u32>,
+    host_f32: Vec<f32>,
 }
 
 /// A device buffer kept between steps, grown when a step needs more.
@@ -154,6 +174,13 @@ impl GrowBuffer {
             self.size = size;
         }
         self.buf.as_ref().expect("created above")
+    }
+
+    /// The buffer, once created.
+    fn get(&self) -> Result<&wgpu::Buffer> {
+        self.buf
+            .as_ref()
+            .ok_or(SoftTissueError::Gpu("buffer not uploaded".into()))
     }
 }
 
@@ -208,6 +235,16 @@ pub struct GpuCompliance {
     pub uploads: u64,
     /// Bodies whose `W` was built on the GPU in the last call.
     pub built: u64,
+    /// Seconds spent writing factors to the device (the `f32` conversion
+    /// and the queue writes; the copy itself runs with the next submit).
+    pub upload_seconds: f64,
+    /// Seconds from submitting a build's dispatches until its `W` was mapped
+    /// on the host: the GPU's work and the transfers, as the stepping thread
+    /// waits for them.
+    pub wait_seconds: f64,
+    /// Seconds in [`Self::compute`] in all (host preparation, upload, wait and
+    /// read-back).
+    pub compute_seconds: f64,
 }
 
 impl std::fmt::Debug for GpuCompliance {
@@ -216,6 +253,9 @@ impl std::fmt::Debug for GpuCompliance {
             .field("min_rows", &self.min_rows)
             .field("dispatches", &self.dispatches)
             .field("uploads", &self.uploads)
+            .field("upload_seconds", &self.upload_seconds)
+            .field("wait_seconds", &self.wait_seconds)
+            .field("compute_seconds", &self.compute_seconds)
             .finish()
     }
 }
@@ -227,23 +267,6 @@ fn gpu_err(e: impl std::fmt::Display) -> SoftTissueError {
 const STORAGE: wgpu::BufferUsages = wgpu::BufferUsages::STORAGE
     .union(wgpu::BufferUsages::COPY_SRC)
     .union(wgpu::BufferUsages::COPY_DST);
-
-/// A storage buffer holding `bytes` for good (the factor's, once per version).
-fn storage(device: &wgpu::Device, label: &str, bytes: &[u8]) -> wgpu::Buffer {
-    // wgpu rejects zero-sized bindings: pad empty arrays to one word.
-    let padded;
-    let contents = if bytes.is_empty() {
-        padded = [0u8; 4];
-        &padded[..]
-    } else {
-        bytes
-    };
-    device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-        label: Some(label),
-        contents,
-        usage: STORAGE,
-    })
-}
 
 /// Writes `data` into `buf` (grown as needed) and returns it.
 fn upload<'a, T: bytemuck::Pod>(
@@ -276,6 +299,9 @@ impl GpuCompliance {
             dispatches: 0,
             uploads: 0,
             built: 0,
+            upload_seconds: 0.0,
+            wait_seconds: 0.0,
+            compute_seconds: 0.0,
         }
     }
 
@@ -312,43 +338,84 @@ impl GpuCompliance {
             .ok_or(SoftTissueError::Gpu("no pipelines".into()))
     }
 
-    /// Uploads the factor in `f32` (once per factor key).
+    /// Writes the factor in `f32` to the device (once per factor key), into
+    /// the body's persistent buffers.
     fn upload_factor(&mut self, body_id: u64, f: &LdltFactor, key: FactorKey) {
         if self.factors.get(&body_id).is_some_and(|u| u.key == key) {
             return;
         }
+        let t0 = Instant::now();
         let s = &*f.symbolic;
         let device = self.device.wgpu_device();
-        let col_ptr: Vec<u32> = s.col_ptr.iter().map(|&x| x as u32).collect();
-        let row_idx: Vec<u32> = s.row_idx.iter().map(|&x| x as u32).collect();
+        let queue: &wgpu::Queue = &self.queue;
+        let up = self
+            .factors
+            .entry(body_id)
+            .or_insert_with(|| UploadedFactor {
+                key,
+                symbolic: None,
+                n: 0,
+                col_ptr: GrowBuffer::default(),
+                row_idx: GrowBuffer::default(),
+                lvals: GrowBuffer::default(),
+                ldiag: GrowBuffer::default(),
+                dinv: GrowBuffer::default(),
+                host_u32: Vec::new(),
+                host_f32: Vec::new(),
+            });
+        up.key = key;
+        up.n = s.n as u32;
+        if !up
+            .symbolic
+            .as_ref()
+            .is_some_and(|old| Arc::ptr_eq(old, &f.symbolic))
+        {
+            up.host_u32.clear();
+            up.host_u32.extend(s.col_ptr.iter().map(|&x| x as u32));
+            upload(
+                device,
+                queue,
+                &mut up.col_ptr,
+                "col_ptr",
+                STORAGE,
+                &up.host_u32,
+            );
+            up.host_u32.clear();
+            up.host_u32.extend(s.row_idx.iter().map(|&x| x as u32));
+            upload(
+                device,
+                queue,
+                &mut up.row_idx,
+                "row_idx",
+                STORAGE,
+                &up.host_u32,
+            );
+            up.symbolic = Some(f.symbolic.clone());
+        }
         // The preconditioner's single-precision copy where the factor has one.
-        let rounded: Vec<f32>;
-        let lvals: &[f32] = match f.l_single() {
-            Some(l) => l,
-            None => {
-                rounded =
-                    f.l.iter()
-                        .flat_map(|m| m.iter().map(|&x| x as f32))
-                        .collect();
-                &rounded
+        match f.l_single() {
+            Some(l) => {
+                upload(device, queue, &mut up.lvals, "lvals", STORAGE, l);
             }
-        };
-        let ldiag: Vec<f32> = f.ldiag.iter().flat_map(|d| d.map(|x| x as f32)).collect();
-        let dinv: Vec<f32> =
+            None => {
+                up.host_f32.clear();
+                up.host_f32
+                    .extend(f.l.iter().flat_map(|m| m.iter().map(|&x| x as f32)));
+                upload(device, queue, &mut up.lvals, "lvals", STORAGE, &up.host_f32);
+            }
+        }
+        up.host_f32.clear();
+        up.host_f32
+            .extend(f.ldiag.iter().flat_map(|d| d.map(|x| x as f32)));
+        upload(device, queue, &mut up.ldiag, "ldiag", STORAGE, &up.host_f32);
+        up.host_f32.clear();
+        up.host_f32.extend(
             f.d.iter()
-                .flat_map(|d| [1.0 / d.x, 1.0 / d.y, 1.0 / d.z].map(|x| x as f32))
-                .collect();
-        let up = UploadedFactor {
-            key,
-            n: s.n as u32,
-            col_ptr: storage(device, "col_ptr", bytemuck::cast_slice(&col_ptr)),
-            row_idx: storage(device, "row_idx", bytemuck::cast_slice(&row_idx)),
-            lvals: storage(device, "lvals", bytemuck::cast_slice(lvals)),
-            ldiag: storage(device, "ldiag", bytemuck::cast_slice(&ldiag)),
-            dinv: storage(device, "dinv", bytemuck::cast_slice(&dinv)),
-        };
-        self.factors.insert(body_id, up);
+                .flat_map(|d| [1.0 / d.x, 1.0 / d.y, 1.0 / d.z].map(|x| x as f32)),
+        );
+        upload(device, queue, &mut up.dinv, "dinv", STORAGE, &up.host_f32);
         self.uploads += 1;
+        self.upload_seconds += t0.elapsed().as_secs_f64();
     }
 
     /// Forgets uploaded factors of bodies not in `alive`.
@@ -380,6 +447,7 @@ impl GpuCompliance {
         h: f64,
         entries: &[JacEntry],
     ) -> Result<(&[usize], &[f32])> {
+        let t0 = Instant::now();
         self.pipelines()?;
         self.upload_factor(body_id, factor, key);
         let s = &*factor.symbolic;
@@ -439,6 +507,13 @@ impl GpuCompliance {
             .get(&body_id)
             .ok_or(SoftTissueError::Gpu("factor not uploaded".into()))?;
         let n = up.n;
+        let (col_ptr, row_idx, lvals, ldiag, dinv) = (
+            up.col_ptr.get()?,
+            up.row_idx.get()?,
+            up.lvals.get()?,
+            up.ldiag.get()?,
+            up.dinv.get()?,
+        );
         let device = self.device.wgpu_device();
         let queue: &wgpu::Queue = &self.queue;
         let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
@@ -519,10 +594,10 @@ impl GpuCompliance {
             &pl.forward,
             &[
                 e(0, params),
-                e(1, &up.col_ptr),
-                e(2, &up.row_idx),
-                e(3, &up.lvals),
-                e(4, &up.ldiag),
+                e(1, col_ptr),
+                e(2, row_idx),
+                e(3, lvals),
+                e(4, ldiag),
                 e(5, paths_buf),
                 e(6, z),
                 e(7, work),
@@ -534,7 +609,7 @@ impl GpuCompliance {
                 e(0, params),
                 e(5, paths_buf),
                 e(6, z),
-                e(8, &up.dinv),
+                e(8, dinv),
                 e(9, gram),
             ],
         );
@@ -573,6 +648,7 @@ impl GpuCompliance {
         }
         let copy = w_bytes.max(4);
         enc.copy_buffer_to_buffer(w, 0, readback, 0, copy);
+        let submitted = Instant::now();
         self.queue.submit([enc.finish()]);
         self.dispatches += 3;
         let slice = readback.slice(..copy);
@@ -587,6 +663,7 @@ impl GpuCompliance {
             return Err(gpu_err(format!("compliance dispatch: {e}")));
         }
         rx.recv().map_err(gpu_err)?.map_err(gpu_err)?;
+        self.wait_seconds += submitted.elapsed().as_secs_f64();
         st.out.clear();
         {
             let data = slice.get_mapped_range();
@@ -594,6 +671,7 @@ impl GpuCompliance {
                 .extend_from_slice(&bytemuck::cast_slice::<u8, f32>(&data)[..m * m]);
         }
         readback.unmap();
+        self.compute_seconds += t0.elapsed().as_secs_f64();
         Ok((&st.rows, &st.out))
     }
 }
