@@ -11,9 +11,8 @@ use crate::contact::ContactSettings;
 /// otherwise every mode builds on the CPU.
 ///
 /// On an NVIDIA H200 the GPU build of one body's `W` took 2.0–5.0 ms for
-/// 30–260 contacts on the 1 183-node lens, of which 1.9–2.7 ms is the
-/// device's latency, nearly independent of the contact count (the forward
-/// solves walk each elimination-tree path level by level). A CPU build
+/// 30–260 contacts on the 1 183-node lens, of which 1.9–2.7 ms is spent
+/// waiting for the device, nearly independent of the contact count. A CPU build
 /// without cached columns took 2.7–52 ms there, so where `W` is built from
 /// scratch each step (`factor_reuse: 0`) the GPU is faster from 30 contacts
 /// (`Auto { min_rows: 90 }`). In the cataract scene the CPU path reuses the
