@@ -21,7 +21,10 @@
 //! against time; `--lcp pgs|block|nncg|subspace` (the contact solver, `LcpSolver`);
 //! `--record-lcp DIR` writes each step's first-pass contact problem with at
 //! least `--record-min-contacts N` (default 91) contacts to `DIR`, for the
-//! `lcp` bench (`ContactProblem`).
+//! `lcp` bench (`ContactProblem`); `--gpu off|on|autoN` (`SoftTissueConfig::gpu`:
+//! `W` on the CPU, on the GPU, or on the GPU from N constraint rows; needs the
+//! `gpu` feature and a GPU adapter; headless it then prints the GPU builds,
+//! their time and the time spent waiting for the device).
 //!
 //! Headless, it prints the median time per phase, the steps per second, the
 //! contact counts and CG iterations, where the lens ended (inside the eye, in
