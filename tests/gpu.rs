@@ -168,11 +168,25 @@ fn cataract_scene_runs_with_the_gpu_path_on() {
         return;
     };
     let mut guard = 0;
+    let mut waited_steps = 0;
     while app.world().resource::<SoftTissueDiagnostics>().steps < 150 {
+        let before = app.world().resource::<SoftTissueDiagnostics>().clone();
         app.update();
         guard += 1;
         assert!(guard < 1000);
+        let d = app.world().resource::<SoftTissueDiagnostics>();
+        if d.steps > before.steps && d.gpu_dispatches > before.gpu_dispatches {
+            // A step that built on the GPU waited for it, within its compliance time.
+            assert!(
+                d.gpu_wait_ms > 0.0 && d.gpu_wait_ms <= d.compliance_ms,
+                "GPU wait {} ms, compliance {} ms",
+                d.gpu_wait_ms,
+                d.compliance_ms
+            );
+            waited_steps += 1;
+        }
     }
+    assert!(waited_steps > 0);
     let d = app.world().resource::<SoftTissueDiagnostics>().clone();
     assert_eq!(d.errors, 0, "{d:?}");
     assert!(d.gpu_dispatches > 0, "the GPU path never ran: {d:?}");

@@ -228,11 +228,12 @@ fn compliance(
         (Some(mut g), Some(min_rows)) => {
             let g = &mut g.0;
             g.min_rows = min_rows;
-            let before = g.dispatches;
+            let (before, waited) = (g.dispatches, g.wait_seconds);
             let r = contacts
                 .solver
                 .build_compliance(&mut b, PassKind::First, Some(g));
             diag.gpu_dispatches += g.dispatches - before;
+            diag.gpu_wait_ms += (g.wait_seconds - waited) * 1e3;
             r
         }
         _ => contacts

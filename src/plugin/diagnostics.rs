@@ -78,6 +78,9 @@ pub struct SoftTissueDiagnostics {
     pub gravity_bodies: usize,
     /// Counter: GPU compute dispatches.
     pub gpu_dispatches: u64,
+    /// Time the compliance waited for the GPU this step (part of
+    /// `compliance_ms`), ms: what the device's round trip costs the step.
+    pub gpu_wait_ms: f64,
     /// Counter: errors reported (each also logged as a warning).
     pub errors: u64,
     /// Counter: bodies that failed a phase and were marked `SoftBodyFailed`.
@@ -110,6 +113,7 @@ impl SoftTissueDiagnostics {
         self.contact_passes = 0;
         self.compliance_solves = 0;
         self.gram_blocks = 0;
+        self.gpu_wait_ms = 0.0;
     }
 
     /// Total step time, ms.
@@ -152,8 +156,10 @@ pub mod paths {
     pub const CONTACTS: DiagnosticPath = DiagnosticPath::const_new("soft_tissue/contacts");
     /// LCP residual, metres.
     pub const LCP_RESIDUAL: DiagnosticPath = DiagnosticPath::const_new("soft_tissue/lcp_residual");
+    /// Time the compliance waited for the GPU, ms.
+    pub const GPU_WAIT: DiagnosticPath = DiagnosticPath::const_new("soft_tissue/gpu_wait_ms");
     /// All of them.
-    pub const ALL: [DiagnosticPath; 12] = [
+    pub const ALL: [DiagnosticPath; 13] = [
         ASSEMBLE,
         FACTORIZE,
         FREE_MOTION,
@@ -166,6 +172,7 @@ pub mod paths {
         FACTOR_AGE,
         CONTACTS,
         LCP_RESIDUAL,
+        GPU_WAIT,
     ];
 }
 
@@ -201,6 +208,7 @@ fn publish(diag: Res<SoftTissueDiagnostics>, mut store: Diagnostics) {
         (&FACTOR_AGE, d.factor_age as f64),
         (&CONTACTS, d.contacts as f64),
         (&LCP_RESIDUAL, d.lcp_residual),
+        (&GPU_WAIT, d.gpu_wait_ms),
     ] {
         store.add_measurement(p, || v);
     }
