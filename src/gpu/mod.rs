@@ -364,31 +364,26 @@ impl GpuCompliance {
             });
         up.key = key;
         up.n = s.n as u32;
+        // Each array through the kept host staging vector into its buffer.
+        let (h32, f32s) = (&mut up.host_u32, &mut up.host_f32);
+        let mut put = |buf: &mut GrowBuffer, label, values: &mut dyn Iterator<Item = f32>| {
+            f32s.clear();
+            f32s.extend(values);
+            upload(device, queue, buf, label, STORAGE, f32s);
+        };
         if !up
             .symbolic
             .as_ref()
             .is_some_and(|old| Arc::ptr_eq(old, &f.symbolic))
         {
-            up.host_u32.clear();
-            up.host_u32.extend(s.col_ptr.iter().map(|&x| x as u32));
-            upload(
-                device,
-                queue,
-                &mut up.col_ptr,
-                "col_ptr",
-                STORAGE,
-                &up.host_u32,
-            );
-            up.host_u32.clear();
-            up.host_u32.extend(s.row_idx.iter().map(|&x| x as u32));
-            upload(
-                device,
-                queue,
-                &mut up.row_idx,
-                "row_idx",
-                STORAGE,
-                &up.host_u32,
-            );
+            for (buf, label, values) in [
+                (&mut up.col_ptr, "col_ptr", &s.col_ptr),
+                (&mut up.row_idx, "row_idx", &s.row_idx),
+            ] {
+                h32.clear();
+                h32.extend(values.iter().map(|&x| x as u32));
+                upload(device, queue, buf, label, STORAGE, h32);
+            }
             up.symbolic = Some(f.symbolic.clone());
         }
         // The preconditioner's single-precision copy where the factor has one.
@@ -396,23 +391,25 @@ impl GpuCompliance {
             Some(l) => {
                 upload(device, queue, &mut up.lvals, "lvals", STORAGE, l);
             }
-            None => {
-                up.host_f32.clear();
-                up.host_f32
-                    .extend(f.l.iter().flat_map(|m| m.iter().map(|&x| x as f32)));
-                upload(device, queue, &mut up.lvals, "lvals", STORAGE, &up.host_f32);
-            }
+            None => put(
+                &mut up.lvals,
+                "lvals",
+                &mut f.l.iter().flat_map(|m| m.iter().map(|&x| x as f32)),
+            ),
         }
-        up.host_f32.clear();
-        up.host_f32
-            .extend(f.ldiag.iter().flat_map(|d| d.map(|x| x as f32)));
-        upload(device, queue, &mut up.ldiag, "ldiag", STORAGE, &up.host_f32);
-        up.host_f32.clear();
-        up.host_f32.extend(
-            f.d.iter()
+        put(
+            &mut up.ldiag,
+            "ldiag",
+            &mut f.ldiag.iter().flat_map(|d| d.map(|x| x as f32)),
+        );
+        put(
+            &mut up.dinv,
+            "dinv",
+            &mut f
+                .d
+                .iter()
                 .flat_map(|d| [1.0 / d.x, 1.0 / d.y, 1.0 / d.z].map(|x| x as f32)),
         );
-        upload(device, queue, &mut up.dinv, "dinv", STORAGE, &up.host_f32);
         self.uploads += 1;
         self.upload_seconds += t0.elapsed().as_secs_f64();
     }
