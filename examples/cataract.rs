@@ -33,8 +33,9 @@
 //! the vectis or between lens and sclera, checked at the end of every step).
 //!
 //! In the window: the lens is coloured by stiffness (red nucleus), the eye is
-//! translucent; the panel switches effects, preconditioner, refresh policy and
-//! compliance, and charts FPS, CG iterations, contacts and time per phase.
+//! translucent; the panel switches effects, preconditioner, refresh policy,
+//! compliance and where `W` is built (CPU or GPU), and charts FPS, CG
+//! iterations, contacts and time per phase.
 //! Keys: `Space` toggles the scripted path; `W/S` move the vectis toward/away
 //! from the incision, `A/D` sideways, `Q/E` across the slit; drag with the right
 //! mouse button to orbit the camera, wheel to zoom.
@@ -365,7 +366,7 @@ mod viewer {
     use bevy_soft_tissue::haptics::{HapticSettings, SimulatedDevice, SimulatedHand};
     use bevy_soft_tissue::plugin::render::BodyColoring;
     use bevy_soft_tissue::plugin::{
-        HapticTool, HapticsPlugin, HapticsStatus, PreconditionerOverride, SoftBody,
+        GpuMode, HapticTool, HapticsPlugin, HapticsStatus, PreconditionerOverride, SoftBody,
         SoftTissueConfig, SoftTissueDiagnostics,
     };
     use bevy_soft_tissue::scenes::cataract::{CataractParams, ExtractionPath, incision_frame};
@@ -870,6 +871,14 @@ mod viewer {
                     &mut config.contact.predict,
                     "detect at predicted positions (fewer passes)",
                 );
+                // `Factorized` bodies' W in the compute shader (`GpuMode::On`).
+                let mut on_gpu = config.gpu != GpuMode::Off;
+                if ui
+                    .checkbox(&mut on_gpu, "build W on the GPU (Factorized)")
+                    .changed()
+                {
+                    config.gpu = if on_gpu { GpuMode::On } else { GpuMode::Off };
+                }
                 ui.separator();
                 let col = |k: usize| s.history.iter().map(|r| r[k]).collect::<Vec<f32>>();
                 chart(ui, "FPS", &[("fps", col(0), egui::Color32::LIGHT_GREEN)]);
@@ -896,6 +905,12 @@ mod viewer {
                     "factor age {} steps, LCP residual {:.1e} m, errors {}",
                     diag.factor_age, diag.lcp_residual, diag.errors
                 ));
+                if config.gpu != GpuMode::Off {
+                    ui.label(format!(
+                        "W on the GPU: waited {:.2} ms for the device this step",
+                        diag.gpu_wait_ms
+                    ));
+                }
                 if let Some(l) = lens.iter().next() {
                     ui.label(format!(
                         "lens: {} nodes, {} tets",
