@@ -150,7 +150,6 @@ fn compliance(v: &str) -> Result<ComplianceMode, String> {
 }
 
 fn headless(args: &Args, params: &CataractParams, config: SoftTissueConfig) -> ExitCode {
-    let gpu = config.gpu;
     println!(
         "cataract scene, headless: {} steps of {:.4} s, preconditioner {:?}, compliance {:?}, GPU {:?}",
         args.steps, config.timestep, args.preconditioner, args.compliance, config.gpu
@@ -222,17 +221,17 @@ fn headless(args: &Args, params: &CataractParams, config: SoftTissueConfig) -> E
                 "factors refreshed by the contact phase's consistency checks: {}",
                 s.consistency_refactors
             );
-            if gpu != GpuMode::Off {
-                println!("GPU compliance dispatches: {}", s.gpu_dispatches);
-            }
-            if let Some((builds, uploads, up, wait, all)) = s.gpu {
+            if let Some(g) = s.gpu {
                 let per = |t: f64, n: u64| t * 1e3 / n.max(1) as f64;
+                println!("GPU compliance dispatches: {}", g.dispatches);
                 println!(
-                    "GPU compliance: {builds} builds, {:.3} ms each ({:.3} ms waiting for the device); \
-                     {uploads} factor uploads, {:.3} ms each",
-                    per(all, builds),
-                    per(wait, builds),
-                    per(up, uploads)
+                    "GPU compliance: {} builds, {:.3} ms each ({:.3} ms waiting for the device); \
+                     {} factor uploads, {:.3} ms each",
+                    g.builds,
+                    per(g.compute_seconds, g.builds),
+                    per(g.wait_seconds, g.builds),
+                    g.uploads,
+                    per(g.upload_seconds, g.uploads)
                 );
             }
             if let Some(r) = &recording {

@@ -52,7 +52,7 @@ fn main() -> bevy_soft_tissue::error::Result<()> {
     for n in [30, 60, 90, 130, 260] {
         let cs = pole_contacts(&body, n, v3(0.0, 0.0, -1.0), 0.3);
         let (mut cpu_t, mut gpu_t) = (Vec::new(), Vec::new());
-        let (wait0, builds0) = (gpu.wait_seconds, gpu.dispatches / 3);
+        let (wait0, builds0) = (gpu.wait_seconds, gpu.built);
         for _ in 0..5 {
             // A new solver each time: no cached columns, W from the body's current factor.
             let build = |body: &mut DeformableBody,
@@ -73,7 +73,7 @@ fn main() -> bevy_soft_tissue::error::Result<()> {
         }
         let (c, g) = (median(cpu_t), median(gpu_t));
         // Mean time the stepping thread waited for the device per GPU build.
-        let wait = (gpu.wait_seconds - wait0) * 1e3 / (gpu.dispatches / 3 - builds0).max(1) as f64;
+        let wait = (gpu.wait_seconds - wait0) * 1e3 / (gpu.built - builds0).max(1) as f64;
         println!("{n:>8} {c:>14.3} {g:>10.3} {:>10.2} {wait:>10.3}", g / c);
     }
     Ok(())

@@ -73,11 +73,25 @@ pub struct HeadlessSummary {
     pub consistency_refactors: u64,
     /// Contact problems written (see [`Recording`]).
     pub recorded: usize,
-    /// Compute dispatches of the GPU compliance (zero on the CPU path).
-    pub gpu_dispatches: u64,
-    /// The GPU compliance's counters at the end, when it ran: builds, factor
-    /// uploads, and seconds uploading, waiting for the device, and in all.
-    pub gpu: Option<(u64, u64, f64, f64, f64)>,
+    /// The GPU compliance's counters at the end, when it ran.
+    pub gpu: Option<GpuCounters>,
+}
+
+/// The GPU compliance's counters at the end of a headless run.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct GpuCounters {
+    /// Compute dispatches.
+    pub dispatches: u64,
+    /// `W` blocks built on the GPU.
+    pub builds: u64,
+    /// Factors written to the device.
+    pub uploads: u64,
+    /// Seconds writing factors.
+    pub upload_seconds: f64,
+    /// Seconds waiting for the device.
+    pub wait_seconds: f64,
+    /// Seconds in the GPU builds in all.
+    pub compute_seconds: f64,
 }
 
 /// Where and from how many contacts the first-pass contact problems are
@@ -337,32 +351,26 @@ pub fn run_headless_recording(
             .resource::<SoftTissueDiagnostics>()
             .consistency_refactors,
         recorded,
-        gpu_dispatches: app
-            .world()
-            .resource::<SoftTissueDiagnostics>()
-            .gpu_dispatches,
         gpu: gpu_counters(&app),
     };
     Ok(summary)
 }
 
 #[cfg(feature = "gpu")]
-fn gpu_counters(app: &App) -> Option<(u64, u64, f64, f64, f64)> {
+fn gpu_counters(app: &App) -> Option<GpuCounters> {
     app.world()
         .get_resource::<bevy_soft_tissue::plugin::GpuBackend>()
-        .map(|g| {
-            let g = &g.0;
-            (
-                g.dispatches / 3,
-                g.uploads,
-                g.upload_seconds,
-                g.wait_seconds,
-                g.compute_seconds,
-            )
+        .map(|g| GpuCounters {
+            dispatches: g.0.dispatches,
+            builds: g.0.built,
+            uploads: g.0.uploads,
+            upload_seconds: g.0.upload_seconds,
+            wait_seconds: g.0.wait_seconds,
+            compute_seconds: g.0.compute_seconds,
         })
 }
 
 #[cfg(not(feature = "gpu"))]
-fn gpu_counters(_: &App) -> Option<(u64, u64, f64, f64, f64)> {
+fn gpu_counters(_: &App) -> Option<GpuCounters> {
     None
 }

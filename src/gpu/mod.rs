@@ -131,8 +131,10 @@ struct Pipelines {
 /// A body's factor on the device. The buffers persist across factor versions
 /// and grow only when a factor needs more; the symbolic arrays are written
 /// again only when the symbolic factorization changes.
+#[derive(Default)]
 struct UploadedFactor {
-    key: FactorKey,
+    /// The factor version on the device (`None`: nothing written yet).
+    key: Option<FactorKey>,
     symbolic: Option<Arc<LdltSymbolic>>,
     n: u32,
     col_ptr: GrowBuffer,
@@ -232,7 +234,8 @@ pub struct GpuCompliance {
     pub dispatches: u64,
     /// Factor uploads so far.
     pub uploads: u64,
-    /// Bodies whose `W` was built on the GPU in the last call.
+    /// Bodies' `W` blocks built on the GPU so far (through
+    /// [`ComplianceBackend::accumulate`]).
     pub built: u64,
     /// Seconds spent writing factors to the device (the `f32` conversion
     /// and the queue writes; the copy itself runs with the next submit).
@@ -340,29 +343,19 @@ impl GpuCompliance {
     /// Writes the factor in `f32` to the device (once per factor key), into
     /// the body's persistent buffers.
     fn upload_factor(&mut self, body_id: u64, f: &LdltFactor, key: FactorKey) {
-        if self.factors.get(&body_id).is_some_and(|u| u.key == key) {
+        if self
+            .factors
+            .get(&body_id)
+            .is_some_and(|u| u.key == Some(key))
+        {
             return;
         }
         let t0 = Instant::now();
         let s = &*f.symbolic;
         let device = self.device.wgpu_device();
         let queue: &wgpu::Queue = &self.queue;
-        let up = self
-            .factors
-            .entry(body_id)
-            .or_insert_with(|| UploadedFactor {
-                key,
-                symbolic: None,
-                n: 0,
-                col_ptr: GrowBuffer::default(),
-                row_idx: GrowBuffer::default(),
-                lvals: GrowBuffer::default(),
-                ldiag: GrowBuffer::default(),
-                dinv: GrowBuffer::default(),
-                host_u32: Vec::new(),
-                host_f32: Vec::new(),
-            });
-        up.key = key;
+        let up = self.factors.entry(body_id).or_default();
+        up.key = Some(key);
         up.n = s.n as u32;
         // Each array through the kept host staging vector into its buffer.
         let (h32, f32s) = (&mut up.host_u32, &mut up.host_f32);
