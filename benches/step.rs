@@ -1,7 +1,7 @@
 //! One implicit step of the paper-size lens (1183 nodes, 5184 tets, nucleus 5× stiffer)
 //! for each preconditioner, while the lens is squeezed and twisted.
 //!
-//! Run: `cargo bench --bench step`.
+//! Run: `cargo bench --bench step` (`-- lens_assemble` for the assembly alone).
 
 use bevy_soft_tissue::core_prelude::*;
 use bevy_soft_tissue::mesh::generate::LENS_RADII;
@@ -60,5 +60,24 @@ fn bench(c: &mut Criterion) {
     group.finish();
 }
 
-criterion_group!(benches, bench);
+/// One assembly (element rotations, forces, `A`, `b`) of the lens in a
+/// squeezed and twisted state.
+fn bench_assemble(c: &mut Criterion) {
+    let (mut body, top) = lens_body(PreconditionerKind::Jacobi);
+    let rest: Vec<Vec3> = body.mesh().positions().to_vec();
+    let rot = Rotation3::from_axis_angle(&Vec3::z_axis(), 0.6);
+    for &i in &top {
+        let p = rest[i];
+        body.drive_node(i, rot * v3(p.x, p.y, p.z - 1.0e-3))
+            .expect("drive");
+    }
+    for _ in 0..5 {
+        body.step(0.02).expect("step");
+    }
+    c.bench_function("lens_assemble", |b| {
+        b.iter(|| body.assemble(0.02).expect("assemble"))
+    });
+}
+
+criterion_group!(benches, bench, bench_assemble);
 criterion_main!(benches);

@@ -155,7 +155,7 @@ pub fn polar_rotation_fast(f: &Mat3) -> Mat3 {
 /// Whether `det F` is safely positive for the Newton iteration: finite and
 /// above `10⁻⁶ ‖F‖³` (`scale2 = ‖F‖²`, Frobenius).
 #[inline]
-fn safely_positive(scale2: f64, det: f64) -> bool {
+pub(crate) fn safely_positive(scale2: f64, det: f64) -> bool {
     scale2.is_finite() && det > 1e-6 * scale2 * scale2.sqrt()
 }
 

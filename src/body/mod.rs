@@ -58,7 +58,7 @@ use crate::error::{Result, SoftTissueError, check_timestep, check_vector};
 use crate::fem::assembly::{BlockCsr, BlockPattern};
 use crate::fem::{Element, RotationMethod};
 use crate::material::TissueMaterial;
-use crate::math::{Mat3, Vec3, polar_rotation_fast, polar_rotation_near};
+use crate::math::{Mat3, Vec3, polar_rotation_fast};
 use crate::mesh::{Surface, TetMesh};
 use crate::solver::PreconditionerState;
 use crate::solver::cg::{self, CgReport, CgScratch};
@@ -468,30 +468,34 @@ impl DeformableBody {
             self.rhs[i] = b;
         }
         let method = self.settings.rotation;
-        for (ei, e) in self.elements.iter().enumerate() {
-            let xe = e.nodes.map(|n| self.x[n]);
-            let ve = e.nodes.map(|n| self.v[n]);
-            let fx = e.deformation_gradient(&xe);
-            let r = match method {
-                // Flat or inverted: the candidate nearest the last rotation (module docs).
-                RotationMethod::Polar => polar_rotation_near(&fx, &self.elem_rot[ei]),
-                RotationMethod::Qr => e.rotation(method, &xe),
-            };
-            self.elem_rot[ei] = r;
-            let f = fx + e.deformation_gradient(&ve) * c_v;
-            let s = r * e.stress(&r, &f) * e.volume;
-            let rg = e.grads.map(|g| r * g);
-            let slots = &pattern.element_slots[ei];
-            for a in 0..4 {
-                self.rhs[e.nodes[a]] -= s * e.grads[a];
-                // K_ba = K_abᵀ: each off-diagonal pair is computed once.
-                self.matrix.values[slots[5 * a]] += e.stiffness_block(&rg, a, a) * c_k;
-                for b in a + 1..4 {
-                    let k = e.stiffness_block(&rg, a, b) * c_k;
-                    self.matrix.values[slots[4 * a + b]] += k;
-                    self.matrix.values[slots[4 * b + a]] += k.transpose();
-                }
-            }
+        // Four elements at a time where the CPU allows; the rest below.
+        let first = match method {
+            RotationMethod::Polar => crate::fem::lanes::assemble_polar(
+                &self.elements,
+                &self.x,
+                &self.v,
+                &mut self.elem_rot,
+                c_k,
+                c_v,
+                &pattern.element_slots,
+                &mut self.matrix.values,
+                &mut self.rhs,
+            ),
+            RotationMethod::Qr => 0,
+        };
+        for ei in first..self.elements.len() {
+            crate::fem::assemble_element(
+                &self.elements[ei],
+                method,
+                &self.x,
+                &self.v,
+                &mut self.elem_rot[ei],
+                c_k,
+                c_v,
+                &pattern.element_slots[ei],
+                &mut self.matrix.values,
+                &mut self.rhs,
+            );
         }
         self.apply_constraints(h);
         self.report.timings.assemble = t0.elapsed().as_secs_f64();

@@ -20,8 +20,9 @@
 //! `A = M + hB + h²K`.
 
 pub mod assembly;
+pub(crate) mod lanes;
 
-use crate::math::{Mat3, Vec3, edge_frame, polar_rotation_fast};
+use crate::math::{Mat3, Vec3, edge_frame, polar_rotation_fast, polar_rotation_near};
 
 /// How element rotations are extracted from the deformation gradient.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
@@ -122,5 +123,49 @@ impl Element {
         (ra * rb.transpose()) * (v * self.lambda)
             + (rb * ra.transpose()) * (v * self.mu)
             + Mat3::identity() * (v * self.mu * self.grads[a].dot(&self.grads[b]))
+    }
+}
+
+/// Adds one element to the system: its rotation into `rot` (for
+/// [`RotationMethod::Polar`], the candidate nearest the `rot` it had when the
+/// element is flat or inverted), its elastic and damping forces (velocity
+/// term times `c_v`) into `rhs`, and its rotated stiffness blocks times `c_k`
+/// into `values` at `slots` (block `(a, b)` at `slots[4a + b]`).
+/// [`lanes`] does the same four elements at a time.
+#[allow(clippy::too_many_arguments)]
+#[inline]
+pub(crate) fn assemble_element(
+    e: &Element,
+    method: RotationMethod,
+    x: &[Vec3],
+    v: &[Vec3],
+    rot: &mut Mat3,
+    c_k: f64,
+    c_v: f64,
+    slots: &[usize; 16],
+    values: &mut [Mat3],
+    rhs: &mut [Vec3],
+) {
+    let xe = e.nodes.map(|n| x[n]);
+    let ve = e.nodes.map(|n| v[n]);
+    let fx = e.deformation_gradient(&xe);
+    let r = match method {
+        // Flat or inverted: the candidate nearest the last rotation.
+        RotationMethod::Polar => polar_rotation_near(&fx, rot),
+        RotationMethod::Qr => e.rotation(method, &xe),
+    };
+    *rot = r;
+    let f = fx + e.deformation_gradient(&ve) * c_v;
+    let s = r * e.stress(&r, &f) * e.volume;
+    let rg = e.grads.map(|g| r * g);
+    for a in 0..4 {
+        rhs[e.nodes[a]] -= s * e.grads[a];
+        // K_ba = K_abᵀ: each off-diagonal pair is computed once.
+        values[slots[5 * a]] += e.stiffness_block(&rg, a, a) * c_k;
+        for b in a + 1..4 {
+            let k = e.stiffness_block(&rg, a, b) * c_k;
+            values[slots[4 * a + b]] += k;
+            values[slots[4 * b + a]] += k.transpose();
+        }
     }
 }
