@@ -17,11 +17,21 @@ struct BvhNode {
 /// Bounding volume hierarchy over mesh primitives (surface triangles or
 /// tetrahedra, given as vertex-index arrays); the tree is built once, boxes are
 /// refitted from current positions.
+///
+/// With a slack `s > 0` ([`Self::with_slack`]) every box is grown by `s` when
+/// it is refitted, and [`Self::refit`] does nothing while no vertex has moved
+/// farther than `s` since the last refit: the grown boxes still hold every
+/// primitive. Queries then visit a few more primitives but find the same ones.
 #[derive(Debug, Clone, Default)]
 pub struct Bvh {
     nodes: Vec<BvhNode>,
     order: Vec<u32>,
     stack: Vec<u32>,
+    slack: f64,
+    /// Positions at the last refit (kept only with a slack).
+    at: Vec<Vec3>,
+    /// Refits done (for tests).
+    pub(crate) refits: u64,
 }
 
 const LEAF: usize = 4;
@@ -29,8 +39,19 @@ const LEAF: usize = 4;
 impl Bvh {
     /// Builds the tree over `prims` (vertex indices into `x`) at positions `x`.
     pub fn new<const N: usize>(prims: &[[usize; N]], x: &[Vec3]) -> Self {
+        Self::with_slack(prims, x, 0.0)
+    }
+
+    /// [`Self::new`] with boxes grown by `slack` (metres; see the type's docs).
+    /// A negative or non-finite slack counts as zero.
+    pub fn with_slack<const N: usize>(prims: &[[usize; N]], x: &[Vec3], slack: f64) -> Self {
         let mut bvh = Self {
             order: (0..prims.len() as u32).collect(),
+            slack: if slack.is_finite() {
+                slack.max(0.0)
+            } else {
+                0.0
+            },
             ..Default::default()
         };
         if !prims.is_empty() {
@@ -79,8 +100,24 @@ impl Bvh {
         id
     }
 
-    /// Recomputes every box from positions `x` (children before parents).
+    /// Recomputes every box from positions `x` (children before parents);
+    /// with a slack, only once some vertex has moved farther than it since the
+    /// last refit.
     pub fn refit<const N: usize>(&mut self, prims: &[[usize; N]], x: &[Vec3]) {
+        let slack = self.slack;
+        if slack > 0.0 {
+            let s2 = slack * slack;
+            if self.at.len() == x.len()
+                && x.iter()
+                    .zip(&self.at)
+                    .all(|(p, q)| (p - q).norm_squared() <= s2)
+            {
+                return;
+            }
+            self.at.clear();
+            self.at.extend_from_slice(x);
+        }
+        self.refits += 1;
         for i in (0..self.nodes.len()).rev() {
             let n = self.nodes[i];
             let (mut lo, mut hi) = (Vec3::repeat(f64::INFINITY), Vec3::repeat(f64::NEG_INFINITY));
@@ -91,6 +128,8 @@ impl Bvh {
                         hi = hi.sup(&x[v]);
                     }
                 }
+                lo.add_scalar_mut(-slack);
+                hi.add_scalar_mut(slack);
             } else {
                 let (l, r) = (self.nodes[n.a as usize], self.nodes[n.b as usize]);
                 lo = l.min.inf(&r.min);
@@ -101,7 +140,7 @@ impl Bvh {
         }
     }
 
-    /// Bounds of the whole tree.
+    /// Bounds of the whole tree (grown by the slack).
     pub fn bounds(&self) -> Option<(Vec3, Vec3)> {
         self.nodes.first().map(|n| (n.min, n.max))
     }
@@ -231,4 +270,77 @@ pub fn closest_point_on_triangle(p: &Vec3, a: &Vec3, b: &Vec3, c: &Vec3) -> [f64
 /// Whether two boxes overlap after growing by `margin`.
 pub fn boxes_overlap(a: &(Vec3, Vec3), b: &(Vec3, Vec3), margin: f64) -> bool {
     (0..3).all(|k| a.0[k] - margin <= b.1[k] && b.0[k] - margin <= a.1[k])
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::math::test_value as val;
+    use crate::mesh::generate;
+
+    /// A tree with a slack skips refits while the vertices stay within it and
+    /// still finds every tetrahedron a point lies in and every tetrahedron
+    /// with a vertex within the query radius; once a vertex moves farther it
+    /// refits, and after a large move it finds the moved tetrahedra.
+    #[test]
+    fn a_slack_tree_skips_refits_and_finds_what_an_exact_one_finds() {
+        let mesh = generate::ellipsoid([4e-3, 3e-3, 2e-3], 4).expect("mesh");
+        let tets = mesh.tets();
+        let mut x = mesh.positions().to_vec();
+        let slack = 2e-5;
+        let mut fat = Bvh::with_slack(tets, &x, slack);
+        let check = |fat: &mut Bvh, x: &[Vec3], seed: usize| {
+            for (k, t) in tets.iter().enumerate() {
+                let c = t.iter().map(|&v| x[v]).sum::<Vec3>() / 4.0;
+                let inside = fat.query_until(&c, 0.0, |e| point_in_tet(&c, tets[e].map(|i| x[i])));
+                assert!(inside, "tetrahedron {k}'s centroid not found");
+            }
+            // Every tetrahedron at every vertex, found from the vertex itself.
+            for (v, p) in x.iter().enumerate() {
+                let mut found = vec![false; tets.len()];
+                fat.query(p, 0.05 * slack, |e| found[e] = true);
+                for (e, t) in tets.iter().enumerate() {
+                    assert!(!t.contains(&v) || found[e], "tetrahedron {e} at vertex {v}");
+                }
+            }
+            let r = 3e-4;
+            for i in 0..40 {
+                let p = x[(i * 37 + seed) % x.len()]
+                    + Vec3::new(val(i, seed), val(i, seed + 1), val(i, seed + 2)) * 2e-5;
+                let mut found = vec![false; tets.len()];
+                fat.query(&p, r, |e| found[e] = true);
+                for (e, t) in tets.iter().enumerate() {
+                    if t.iter().any(|&v| (x[v] - p).norm() <= r) {
+                        assert!(found[e], "tetrahedron {e} within {r} of {p} not found");
+                    }
+                }
+            }
+        };
+        check(&mut fat, &x, 1);
+        let refits = fat.refits;
+        // Small moves: every vertex within 0.9 of the slack of where the tree
+        // last saw it.
+        let base = x.clone();
+        for round in 0..3 {
+            for (i, p) in x.iter_mut().enumerate() {
+                let d = Vec3::new(val(i, round + 3), val(i, round + 4), val(i, round + 5));
+                *p = base[i] + d * (0.9 * slack / d.norm().max(1e-300)).min(1.0);
+            }
+            fat.refit(tets, &x);
+            assert_eq!(fat.refits, refits, "refitted after moves within the slack");
+            check(&mut fat, &x, round + 7);
+        }
+        // One vertex past the slack: a refit.
+        x[0].x += 1.5 * slack;
+        fat.refit(tets, &x);
+        assert_eq!(fat.refits, refits + 1);
+        check(&mut fat, &x, 11);
+        // The whole mesh moved by far more than the slack.
+        for p in &mut x {
+            *p += Vec3::new(3e-3, -1e-3, 2e-3);
+        }
+        fat.refit(tets, &x);
+        assert_eq!(fat.refits, refits + 2);
+        check(&mut fat, &x, 13);
+    }
 }

@@ -7,7 +7,8 @@
 //! - **Body – body**: the surface vertices of one body against the surface
 //!   triangles of the other, in both directions. Each body keeps a bounding
 //!   volume hierarchy of its surface triangles and one of its tetrahedra, both
-//!   built once and refitted every pass ([`Bvh`]). The closest triangle gives barycentric
+//!   built once, their boxes grown by a quarter of the alarm distance and
+//!   refitted once a vertex has moved farther than that ([`Bvh`]). The closest triangle gives barycentric
 //!   weights. Whether a vertex is *inside* the other body is decided by the
 //!   tetrahedra (a point-in-tet query), never by the side of a triangle's plane
 //!   alone: near a cut (an incision's wall) an outside vertex can lie behind the
@@ -66,6 +67,11 @@ impl DetectBody {
         self.aabb = (lo, hi);
     }
 }
+
+/// The slack of the bodies' bounding volume hierarchies, as a fraction of
+/// the alarm distance ([`Bvh::with_slack`]): the passes of a step move the
+/// surfaces by far less, so most passes skip the refit of both trees.
+const BVH_SLACK: f64 = 0.25;
 
 /// What detection needs of the contact settings.
 #[derive(Debug, Clone, Copy)]
@@ -141,9 +147,14 @@ pub fn detect<B: Bodies + ?Sized, T: Tools + ?Sized>(
             }
             let sb = &mut state[b];
             let tets = bodies.body(b).mesh().tets();
-            let bvh = sb.bvh.get_or_insert_with(|| Bvh::new(&sb.tris, &sb.x));
+            let slack = BVH_SLACK * margin;
+            let bvh = sb
+                .bvh
+                .get_or_insert_with(|| Bvh::with_slack(&sb.tris, &sb.x, slack));
             bvh.refit(&sb.tris, &sb.x);
-            let tet_bvh = sb.tet_bvh.get_or_insert_with(|| Bvh::new(tets, &sb.x));
+            let tet_bvh = sb
+                .tet_bvh
+                .get_or_insert_with(|| Bvh::with_slack(tets, &sb.x, slack));
             tet_bvh.refit(tets, &sb.x);
             vertex_triangle(state, bodies, a, b, params, out);
         }
