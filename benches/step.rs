@@ -1,7 +1,7 @@
 //! One implicit step of the paper-size lens (1183 nodes, 5184 tets, nucleus 5× stiffer)
 //! for each preconditioner, while the lens is squeezed and twisted.
 //!
-//! Run: `cargo bench --bench step` (`-- lens_assemble` for the assembly alone).
+//! Run: `cargo bench --bench step` (`-- lens_assemble` for the assembly alone, `-- lens_backward` for one backward sweep with the factor).
 
 use bevy_soft_tissue::core_prelude::*;
 use bevy_soft_tissue::mesh::generate::LENS_RADII;
@@ -79,5 +79,34 @@ fn bench_assemble(c: &mut Criterion) {
     });
 }
 
-criterion_group!(benches, bench, bench_assemble);
+/// One backward sweep with the lens's factor, from `l` and from its
+/// single-precision copy (the contact correction's full sweep).
+fn bench_backward(c: &mut Criterion) {
+    let (mut body, _) = lens_body(PreconditionerKind::Periodic { every: 1 });
+    body.step(0.02).expect("step");
+    let mut f = body
+        .preconditioner()
+        .factor_state()
+        .expect("factor")
+        .factor
+        .clone();
+    assert!(f.round_to_single());
+    let n = f.symbolic.n;
+    let y0: Vec<Vec3> = (0..n).map(|i| v3(1.0, -0.5, 0.25 * i as f64)).collect();
+    let mut y = y0.clone();
+    c.bench_function("lens_backward_double", |b| {
+        b.iter(|| {
+            y.copy_from_slice(&y0);
+            f.backward(&mut y)
+        })
+    });
+    c.bench_function("lens_backward_single", |b| {
+        b.iter(|| {
+            y.copy_from_slice(&y0);
+            f.backward_single(&mut y)
+        })
+    });
+}
+
+criterion_group!(benches, bench, bench_assemble, bench_backward);
 criterion_main!(benches);

@@ -264,6 +264,17 @@ impl LdltFactor {
         self.backward_with::<false>(y);
     }
 
+    /// [`Self::backward`] with the single-precision copy of `L` when there is
+    /// one ([`Self::round_to_single`]; otherwise this is [`Self::backward`]):
+    /// half the memory read, `f32` round-off in the blocks of `L` only.
+    pub fn backward_single(&self, y: &mut [Vec3]) {
+        if self.has_single() {
+            self.backward_with::<true>(y);
+        } else {
+            self.backward_with::<false>(y);
+        }
+    }
+
     /// [`Self::forward`] with `L` in double (`SINGLE = false`) or single
     /// precision (`l32`, which must hold the copy).
     fn forward_with<const SINGLE: bool>(&self, y: &mut [Vec3]) {
@@ -841,6 +852,10 @@ mod tests {
             // ... and rounding did happen: the kernels read the f32 copy.
             assert!(worst > 0.0);
         }
+        let (mut b32, mut b64) = (y0.clone(), y0.clone());
+        f.backward_single(&mut b32);
+        f.backward_with::<true>(&mut b64);
+        assert_eq!(b32, b64);
         let (mut x, mut xs, mut tmp) = (y0.clone(), y0.clone(), y0.clone());
         f.solve(&y0, &mut x, &mut tmp);
         f.solve_single(&y0, &mut xs, &mut tmp);
@@ -852,6 +867,10 @@ mod tests {
         f.solve(&y0, &mut x, &mut tmp);
         f.solve_single(&y0, &mut xs, &mut tmp);
         assert_eq!(x, xs);
+        let (mut b32, mut b64) = (y0.clone(), y0.clone());
+        f.backward_single(&mut b32);
+        f.backward(&mut b64);
+        assert_eq!(b32, b64);
         // Copying values drops the copy too.
         f.l[3][(1, 2)] = 0.25;
         assert!(f.round_to_single());

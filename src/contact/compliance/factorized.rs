@@ -308,7 +308,10 @@ pub(super) fn correction(
     for k in 0..n {
         y[k] = y[k].component_div(&f.d[k]);
     }
-    f.backward(y);
+    // The backward sweep reads every block of `L`: with the preconditioner's
+    // single-precision copy where it has one (half the memory; `W` and the
+    // forward part stay in double precision).
+    f.backward_single(y);
     for k in 0..n {
         let old = sym.perm[k];
         let v = y[k] * h2;
