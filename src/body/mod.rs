@@ -542,7 +542,8 @@ impl DeformableBody {
                 self.node_rot[n] += r;
             }
         }
-        for r in &mut self.node_rot {
+        let done = crate::fem::lanes::polar_rotations(&mut self.node_rot);
+        for r in &mut self.node_rot[done..] {
             *r = polar_rotation_fast(r);
         }
     }

@@ -43,6 +43,20 @@ pub(crate) fn assemble_polar(
     0
 }
 
+/// Replaces the matrices `m[0..4k]` (the largest multiple of four) by their
+/// rotations, as [`crate::math::polar_rotation_fast`] gives them, four at a
+/// time; returns `4k` (0 where the CPU lacks AVX2 and FMA). The caller
+/// takes care of the rest.
+pub(crate) fn polar_rotations(m: &mut [Mat3]) -> usize {
+    #[cfg(target_arch = "x86_64")]
+    if crate::math::has_avx2_fma() {
+        // SAFETY: the CPU supports the features the function is compiled for.
+        return unsafe { imp::polar_rotations_avx2(m) };
+    }
+    let _ = m;
+    0
+}
+
 #[cfg(target_arch = "x86_64")]
 mod imp {
     //! Every function here is compiled for AVX2 and FMA and inlined into
@@ -236,6 +250,24 @@ mod imp {
         ]
     }
 
+    /// See [`super::polar_rotations`].
+    #[target_feature(enable = "avx2,fma")]
+    pub(super) fn polar_rotations_avx2(m: &mut [Mat3]) -> usize {
+        let groups = m.len() / 4;
+        for gi in 0..groups {
+            let q = &mut m[4 * gi..4 * gi + 4];
+            let mut f = zero_m();
+            for (i, row) in f.iter_mut().enumerate() {
+                for (j, x) in row.iter_mut().enumerate() {
+                    *x = L::from_array([q[0][(i, j)], q[1][(i, j)], q[2][(i, j)], q[3][(i, j)]]);
+                }
+            }
+            let r = rotation(&f, |_, fl| crate::math::polar_rotation(fl));
+            q.copy_from_slice(&extract(&r));
+        }
+        4 * groups
+    }
+
     /// See [`super::assemble_polar`].
     #[target_feature(enable = "avx2,fma")]
     #[allow(clippy::too_many_arguments)]
@@ -292,7 +324,7 @@ mod imp {
                 &elem_rot[4 * gi + 2],
                 &elem_rot[4 * gi + 3],
             ];
-            let r = rotation(&f, prev);
+            let r = rotation(&f, |l, fl| crate::math::polar_rotation_near(fl, prev[l]));
             for (l, rl) in extract(&r).into_iter().enumerate() {
                 elem_rot[4 * gi + l] = rl;
             }
@@ -373,11 +405,11 @@ mod imp {
     }
 
     /// The rotations of four deformation gradients by the scaled Newton
-    /// iteration of [`crate::math::polar_rotation_fast`]; a lane it does not
-    /// suit gets [`crate::math::polar_rotation_near`] of its `prev`.
+    /// iteration of [`crate::math::polar_rotation_fast`]; a lane `l` it does
+    /// not suit gets `fallback(l, F_l)`.
     #[inline]
     #[target_feature(enable = "avx2,fma")]
-    fn rotation(f: &M, prev: [&Mat3; 4]) -> M {
+    fn rotation(f: &M, fallback: impl Fn(usize, &Mat3) -> Mat3) -> M {
         let scale2 = norm2(f).to_array();
         let d0 = det(f).to_array();
         let mut ok = [false; 4];
@@ -442,7 +474,7 @@ mod imp {
         for l in 0..4 {
             if !(ok[l] && done[l]) {
                 let fl = extract(f)[l];
-                set_lane(&mut xm, l, &crate::math::polar_rotation_near(&fl, prev[l]));
+                set_lane(&mut xm, l, &fallback(l, &fl));
             }
         }
         xm
@@ -452,9 +484,41 @@ mod imp {
 #[cfg(test)]
 mod tests {
     use super::super::{Element, RotationMethod, assemble_element, assembly::BlockPattern};
-    use crate::math::{Mat3, Vec3, test_value as val};
+    use crate::math::{Mat3, Vec3, polar_rotation_fast, test_value as val};
     use crate::mesh::generate;
     use nalgebra::Rotation3;
+
+    /// Four at a time, the rotations are `polar_rotation_fast`'s to rounding:
+    /// strained rotations, sums of nearby rotations (as the node rotations
+    /// are), a flat, an inverted, a zero and a non-finite matrix, and a
+    /// count that leaves a remainder for the caller.
+    #[test]
+    fn four_lanes_match_the_scalar_rotations() {
+        let mut m: Vec<Mat3> = (0..41)
+            .map(|k| {
+                let r = Rotation3::from_euler_angles(val(k, 1), val(k, 2), val(k, 3));
+                let s = Mat3::from_fn(|i, j| 0.3 * val(9 * k + 3 * i + j, 4) / 14.0);
+                r.matrix() * (Mat3::identity() + s) * (1.0 + (k % 6) as f64)
+            })
+            .collect();
+        let turn = *Rotation3::from_euler_angles(0.4, -1.2, 2.0).matrix();
+        m[3] = turn * Mat3::from_diagonal(&Vec3::new(1.0, 0.7, 0.0));
+        m[6] = turn * Mat3::from_diagonal(&Vec3::new(1.0, 1.2, -0.5));
+        m[9] = Mat3::zeros();
+        m[13] = Mat3::repeat(f64::NAN);
+        let want: Vec<Mat3> = m.iter().map(polar_rotation_fast).collect();
+        let done = super::polar_rotations(&mut m);
+        if crate::math::has_avx2_fma() {
+            assert_eq!(done, 40);
+        }
+        for r in &mut m[done..] {
+            *r = polar_rotation_fast(r);
+        }
+        for (k, (a, b)) in m.iter().zip(&want).enumerate() {
+            assert!(a.iter().all(|v| v.is_finite()), "matrix {k}: {a}");
+            assert!((a - b).norm() <= 1e-12, "matrix {k}: {a} against {b}");
+        }
+    }
 
     /// The four-lane assembly gives the scalar path's rotations, forces and
     /// blocks to rounding, on a lens mesh turned, strained, with velocities
