@@ -1,6 +1,7 @@
 //! Element assembly four elements at a time, one element per vector lane
 //! (AVX2 and FMA on x86-64; the scalar [`super::assemble_element`] elsewhere
-//! and for the elements left over).
+//! and for the elements left over), and the node rotations of the warp the
+//! same way ([`polar_rotations`]).
 //!
 //! The arithmetic is the scalar path's, lane by lane: the deformation
 //! gradient, the rotation by the same scaled Newton iteration as
@@ -60,8 +61,10 @@ pub(crate) fn polar_rotations(m: &mut [Mat3]) -> usize {
 #[cfg(target_arch = "x86_64")]
 mod imp {
     //! Every function here is compiled for AVX2 and FMA and inlined into
-    //! [`assemble_polar_avx2`] (a trait method cannot carry target features,
-    //! so the lane arithmetic is written as method calls, not operators).
+    //! [`assemble_polar_avx2`] and [`polar_rotations_avx2`] (a trait method
+    //! cannot carry target features, so the lane arithmetic is written as
+    //! inherent method calls, not operators: as operators the intrinsics
+    //! were left as calls and the kernel ran slower than the scalar path).
 
     use std::arch::x86_64::*;
 
@@ -72,6 +75,8 @@ mod imp {
     #[derive(Clone, Copy)]
     struct L(__m256d);
 
+    // Named like the operator traits on purpose; see the module docs.
+    #[allow(clippy::should_implement_trait)]
     impl L {
         #[inline]
         #[target_feature(enable = "avx2,fma")]
@@ -459,7 +464,7 @@ mod imp {
                 }
                 let mut da = det(&xm).to_array();
                 for l in 0..4 {
-                    if !done[l] && !(da[l] > 0.0) {
+                    if !done[l] && (da[l].is_nan() || da[l] <= 0.0) {
                         ok[l] = false;
                         done[l] = true;
                     }
