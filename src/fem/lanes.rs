@@ -75,6 +75,17 @@ mod imp {
     #[derive(Clone, Copy)]
     struct L(__m256d);
 
+    /// A lane-wise binary operation as an inherent method.
+    macro_rules! binary {
+        ($name:ident, $intrinsic:ident) => {
+            #[inline]
+            #[target_feature(enable = "avx2,fma")]
+            fn $name(self, o: Self) -> Self {
+                Self($intrinsic(self.0, o.0))
+            }
+        };
+    }
+
     // Named like the operator traits on purpose; see the module docs.
     #[allow(clippy::should_implement_trait)]
     impl L {
@@ -96,26 +107,10 @@ mod imp {
             unsafe { _mm256_storeu_pd(a.as_mut_ptr(), self.0) };
             a
         }
-        #[inline]
-        #[target_feature(enable = "avx2,fma")]
-        fn add(self, o: Self) -> Self {
-            Self(_mm256_add_pd(self.0, o.0))
-        }
-        #[inline]
-        #[target_feature(enable = "avx2,fma")]
-        fn sub(self, o: Self) -> Self {
-            Self(_mm256_sub_pd(self.0, o.0))
-        }
-        #[inline]
-        #[target_feature(enable = "avx2,fma")]
-        fn mul(self, o: Self) -> Self {
-            Self(_mm256_mul_pd(self.0, o.0))
-        }
-        #[inline]
-        #[target_feature(enable = "avx2,fma")]
-        fn div(self, o: Self) -> Self {
-            Self(_mm256_div_pd(self.0, o.0))
-        }
+        binary!(add, _mm256_add_pd);
+        binary!(sub, _mm256_sub_pd);
+        binary!(mul, _mm256_mul_pd);
+        binary!(div, _mm256_div_pd);
         #[inline]
         #[target_feature(enable = "avx2,fma")]
         fn sqrt(self) -> Self {
