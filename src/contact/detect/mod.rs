@@ -8,15 +8,15 @@
 //!   triangles of the other, in both directions. Each body keeps a bounding
 //!   volume hierarchy of its surface triangles and one of its tetrahedra, both
 //!   built once, their boxes grown by a quarter of the alarm distance and
-//!   refitted once a vertex has moved farther than that ([`Bvh`]). The
-//!   closest triangle gives barycentric weights. Whether a vertex is *inside*
-//!   the other body is decided by the tetrahedra (a point-in-tet query), never
-//!   by the side of a triangle's plane alone: near a cut (an incision's wall) an outside vertex can lie behind the
-//!   closest triangle's plane, and a vertex that went deeper than the alarm
-//!   distance in one step has no triangle near it at all. An outside vertex
-//!   within the alarm distance gets the triangle's outward normal; an inside
-//!   vertex is pushed back out where it came in (its start-of-step position
-//!   carried along with the other body), however deep it is.
+//!   refitted once a vertex has moved farther than that ([`Bvh`]). The closest
+//!   triangle gives barycentric weights. Whether a vertex is *inside* the other
+//!   body is decided by the tetrahedra (a point-in-tet query), never by the side
+//!   of a triangle's plane alone: near a cut (an incision's wall) an outside
+//!   vertex can lie behind the closest triangle's plane, and a vertex that went
+//!   deeper than the alarm distance in one step has no triangle near it at all.
+//!   An outside vertex within the alarm distance gets the triangle's outward
+//!   normal; an inside vertex is pushed back out where it came in (its start-of-
+//!   step position carried along with the other body), however deep it is.
 //!
 //! Detection reads the positions `DetectBody::x` that the prediction phase
 //! ([`super::predict`]) fills: the free motion, or in a predicted first pass
