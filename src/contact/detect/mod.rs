@@ -15,8 +15,9 @@
 //!   vertex can lie behind the closest triangle's plane, and a vertex that went
 //!   deeper than the alarm distance in one step has no triangle near it at all.
 //!   An outside vertex within the alarm distance gets the triangle's outward
-//!   normal; an inside vertex is pushed back out where it came in (its start-of-
-//!   step position carried along with the other body), however deep it is.
+//!   normal; an inside vertex is pushed back out where it came in (its
+//!   start-of-step position carried along with the other body), however deep
+//!   it is.
 //!
 //! Detection reads the positions `DetectBody::x` that the prediction phase
 //! ([`super::predict`]) fills: the free motion, or in a predicted first pass
