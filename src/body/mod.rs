@@ -56,7 +56,7 @@ use std::time::Instant;
 
 use crate::error::{Result, SoftTissueError, check_timestep, check_vector};
 use crate::fem::assembly::{BlockCsr, BlockPattern};
-use crate::fem::{Element, RotationMethod};
+use crate::fem::{AssemblyInput, AssemblyOutput, Element, RotationMethod, assemble_element, lanes};
 use crate::material::TissueMaterial;
 use crate::math::{Mat3, Vec3, polar_rotation_fast};
 use crate::mesh::{Surface, TetMesh};
@@ -468,34 +468,27 @@ impl DeformableBody {
             self.rhs[i] = b;
         }
         let method = self.settings.rotation;
+        let input = AssemblyInput {
+            x: &self.x,
+            v: &self.v,
+            c_k,
+            c_v,
+        };
+        let mut out = AssemblyOutput {
+            values: &mut self.matrix.values,
+            rhs: &mut self.rhs,
+        };
+        let slots = &pattern.element_slots;
         // Four elements at a time where the CPU allows; the rest below.
         let first = match method {
-            RotationMethod::Polar => crate::fem::lanes::assemble_polar(
-                &self.elements,
-                &self.x,
-                &self.v,
-                &mut self.elem_rot,
-                c_k,
-                c_v,
-                &pattern.element_slots,
-                &mut self.matrix.values,
-                &mut self.rhs,
-            ),
+            RotationMethod::Polar => {
+                lanes::assemble_polar(&self.elements, slots, input, &mut self.elem_rot, &mut out)
+            }
             RotationMethod::Qr => 0,
         };
         for ei in first..self.elements.len() {
-            crate::fem::assemble_element(
-                &self.elements[ei],
-                method,
-                &self.x,
-                &self.v,
-                &mut self.elem_rot[ei],
-                c_k,
-                c_v,
-                &pattern.element_slots[ei],
-                &mut self.matrix.values,
-                &mut self.rhs,
-            );
+            let (e, rot) = (&self.elements[ei], &mut self.elem_rot[ei]);
+            assemble_element(e, method, input, &slots[ei], rot, &mut out);
         }
         self.apply_constraints(h);
         self.report.timings.assemble = t0.elapsed().as_secs_f64();
@@ -542,7 +535,7 @@ impl DeformableBody {
                 self.node_rot[n] += r;
             }
         }
-        let done = crate::fem::lanes::polar_rotations(&mut self.node_rot);
+        let done = lanes::polar_rotations(&mut self.node_rot);
         for r in &mut self.node_rot[done..] {
             *r = polar_rotation_fast(r);
         }

@@ -12,35 +12,28 @@
 //! gets its rotation from the scalar [`crate::math::polar_rotation_near`], as
 //! the scalar path would give it.
 
-use super::Element;
-use crate::math::{Mat3, Vec3};
+use super::{AssemblyInput, AssemblyOutput, Element};
+use crate::math::Mat3;
 
 /// Assembles the elements `0..4k` of `elements` (the largest multiple of
 /// four) with [`super::RotationMethod::Polar`], exactly where the scalar
-/// path puts them: element rotations into `elem_rot`, forces into `rhs`,
-/// stiffness blocks (times `c_k`) into `values` at the element's `slots`.
+/// [`super::assemble_element`] puts them: element rotations into `elem_rot`,
+/// forces and stiffness blocks into `out` (at the elements' `slots`).
 /// Returns `4k`; the caller assembles the rest. Does nothing (returns 0)
 /// where the CPU lacks AVX2 and FMA.
-#[allow(clippy::too_many_arguments)]
 pub(crate) fn assemble_polar(
     elements: &[Element],
-    x: &[Vec3],
-    v: &[Vec3],
-    elem_rot: &mut [Mat3],
-    c_k: f64,
-    c_v: f64,
     slots: &[[usize; 16]],
-    values: &mut [Mat3],
-    rhs: &mut [Vec3],
+    input: AssemblyInput<'_>,
+    elem_rot: &mut [Mat3],
+    out: &mut AssemblyOutput<'_>,
 ) -> usize {
     #[cfg(target_arch = "x86_64")]
     if crate::math::has_avx2_fma() {
         // SAFETY: the CPU supports the features the function is compiled for.
-        return unsafe {
-            imp::assemble_polar_avx2(elements, x, v, elem_rot, c_k, c_v, slots, values, rhs)
-        };
+        return unsafe { imp::assemble_polar_avx2(elements, slots, input, elem_rot, out) };
     }
-    let _ = (elements, x, v, elem_rot, c_k, c_v, slots, values, rhs);
+    let _ = (elements, slots, input, elem_rot, out);
     0
 }
 
@@ -68,7 +61,7 @@ mod imp {
 
     use std::arch::x86_64::*;
 
-    use super::super::Element;
+    use super::super::{AssemblyInput, AssemblyOutput, Element};
     use crate::math::{Mat3, Vec3};
 
     /// Four `f64`, one per element.
@@ -270,18 +263,14 @@ mod imp {
 
     /// See [`super::assemble_polar`].
     #[target_feature(enable = "avx2,fma")]
-    #[allow(clippy::too_many_arguments)]
     pub(super) fn assemble_polar_avx2(
         elements: &[Element],
-        x: &[Vec3],
-        v: &[Vec3],
-        elem_rot: &mut [Mat3],
-        c_k: f64,
-        c_v: f64,
         slots: &[[usize; 16]],
-        values: &mut [Mat3],
-        rhs: &mut [Vec3],
+        input: AssemblyInput<'_>,
+        elem_rot: &mut [Mat3],
+        out: &mut AssemblyOutput<'_>,
     ) -> usize {
+        let AssemblyInput { x, v, c_k, c_v } = input;
         let groups = elements.len() / 4;
         let (half, one, three) = (L::splat(0.5), L::splat(1.0), L::splat(3.0));
         let (cv, ck) = (L::splat(c_v), L::splat(c_k));
@@ -374,7 +363,7 @@ mod imp {
                 let fa = mul_mv(&s, &g[a]);
                 let fa = [fa[0].to_array(), fa[1].to_array(), fa[2].to_array()];
                 for l in 0..4 {
-                    rhs[es[l].nodes[a]] -= Vec3::new(fa[0][l], fa[1][l], fa[2][l]);
+                    out.rhs[es[l].nodes[a]] -= Vec3::new(fa[0][l], fa[1][l], fa[2][l]);
                 }
             }
             for a in 0..4 {
@@ -392,10 +381,10 @@ mod imp {
                     for (l, kb) in extract(&blk).into_iter().enumerate() {
                         let sl = &slots[4 * gi + l];
                         if a == b {
-                            values[sl[5 * a]] += kb;
+                            out.values[sl[5 * a]] += kb;
                         } else {
-                            values[sl[4 * a + b]] += kb;
-                            values[sl[4 * b + a]] += kb.transpose();
+                            out.values[sl[4 * a + b]] += kb;
+                            out.values[sl[4 * b + a]] += kb.transpose();
                         }
                     }
                 }
@@ -483,7 +472,10 @@ mod imp {
 
 #[cfg(test)]
 mod tests {
-    use super::super::{Element, RotationMethod, assemble_element, assembly::BlockPattern};
+    use super::super::{
+        AssemblyInput, AssemblyOutput, Element, RotationMethod, assemble_element,
+        assembly::BlockPattern,
+    };
     use crate::math::{Mat3, Vec3, polar_rotation_fast, test_value as val};
     use crate::mesh::generate;
     use nalgebra::Rotation3;
@@ -572,33 +564,31 @@ mod tests {
             let mut rot = prev.clone();
             let mut values = vec![Mat3::zeros(); pattern.nnz()];
             let mut rhs = vec![Vec3::zeros(); x.len()];
+            let input = AssemblyInput {
+                x: &x,
+                v: &v,
+                c_k,
+                c_v,
+            };
+            let mut out = AssemblyOutput {
+                values: &mut values,
+                rhs: &mut rhs,
+            };
+            let slots = &pattern.element_slots;
             let first = if lanes {
-                super::assemble_polar(
-                    &elements,
-                    &x,
-                    &v,
-                    &mut rot,
-                    c_k,
-                    c_v,
-                    &pattern.element_slots,
-                    &mut values,
-                    &mut rhs,
-                )
+                super::assemble_polar(&elements, slots, input, &mut rot, &mut out)
             } else {
                 0
             };
             for ei in first..elements.len() {
+                let e = &elements[ei];
                 assemble_element(
-                    &elements[ei],
+                    e,
                     RotationMethod::Polar,
-                    &x,
-                    &v,
+                    input,
+                    &slots[ei],
                     &mut rot[ei],
-                    c_k,
-                    c_v,
-                    &pattern.element_slots[ei],
-                    &mut values,
-                    &mut rhs,
+                    &mut out,
                 );
             }
             (first, rot, values, rhs)

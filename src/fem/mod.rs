@@ -130,26 +130,45 @@ impl Element {
     }
 }
 
+/// What every element of one assembly reads: positions, velocities and the
+/// step's coefficients (stiffness blocks times `c_k`, the velocity term of
+/// the stress times `c_v`).
+#[derive(Clone, Copy)]
+pub(crate) struct AssemblyInput<'a> {
+    /// Node positions.
+    pub x: &'a [Vec3],
+    /// Node velocities.
+    pub v: &'a [Vec3],
+    /// Factor of the stiffness blocks (`h β + h²`).
+    pub c_k: f64,
+    /// Factor of the velocity term of the stress (`β + h`).
+    pub c_v: f64,
+}
+
+/// Where an assembly adds to: the system's blocks and its right-hand side.
+pub(crate) struct AssemblyOutput<'a> {
+    /// One block per slot of the matrix's pattern.
+    pub values: &'a mut [Mat3],
+    /// One force per node.
+    pub rhs: &'a mut [Vec3],
+}
+
 /// Adds one element to the system: its rotation into `rot` (for
 /// [`RotationMethod::Polar`], the candidate nearest the `rot` it had when the
-/// element is flat or inverted), its elastic and damping forces (velocity
-/// term times `c_v`) into `rhs`, and its rotated stiffness blocks times `c_k`
-/// into `values` at `slots` (block `(a, b)` at `slots[4a + b]`).
-/// [`lanes`] does the same four elements at a time.
-#[allow(clippy::too_many_arguments)]
+/// element is flat or inverted), its elastic and damping forces into
+/// `out.rhs`, and its rotated stiffness blocks into `out.values` at `slots`
+/// (block `(a, b)` at `slots[4a + b]`). [`lanes`] does the same four elements
+/// at a time.
 #[inline]
 pub(crate) fn assemble_element(
     e: &Element,
     method: RotationMethod,
-    x: &[Vec3],
-    v: &[Vec3],
-    rot: &mut Mat3,
-    c_k: f64,
-    c_v: f64,
+    input: AssemblyInput<'_>,
     slots: &[usize; 16],
-    values: &mut [Mat3],
-    rhs: &mut [Vec3],
+    rot: &mut Mat3,
+    out: &mut AssemblyOutput<'_>,
 ) {
+    let AssemblyInput { x, v, c_k, c_v } = input;
     let xe = e.nodes.map(|n| x[n]);
     let ve = e.nodes.map(|n| v[n]);
     let fx = e.deformation_gradient(&xe);
@@ -163,13 +182,13 @@ pub(crate) fn assemble_element(
     let s = r * e.stress(&r, &f) * e.volume;
     let rg = e.grads.map(|g| r * g);
     for a in 0..4 {
-        rhs[e.nodes[a]] -= s * e.grads[a];
+        out.rhs[e.nodes[a]] -= s * e.grads[a];
         // K_ba = K_abᵀ: each off-diagonal pair is computed once.
-        values[slots[5 * a]] += e.stiffness_block(&rg, a, a) * c_k;
+        out.values[slots[5 * a]] += e.stiffness_block(&rg, a, a) * c_k;
         for b in a + 1..4 {
             let k = e.stiffness_block(&rg, a, b) * c_k;
-            values[slots[4 * a + b]] += k;
-            values[slots[4 * b + a]] += k.transpose();
+            out.values[slots[4 * a + b]] += k;
+            out.values[slots[4 * b + a]] += k.transpose();
         }
     }
 }
