@@ -1,7 +1,7 @@
 //! One implicit step of the paper-size lens (1183 nodes, 5184 tets, nucleus 5× stiffer)
 //! for each preconditioner, while the lens is squeezed and twisted.
 //!
-//! Run: `cargo bench --bench step` (`-- lens_assemble` for the assembly alone, `-- lens_backward` for one backward sweep with the factor).
+//! Run: `cargo bench --bench step` (`-- lens_assemble` for the assembly alone, `-- lens_backward` for one backward sweep with the factor, `-- lens_solve_many6` for six right-hand sides at once, `-- lens_w` for `W` of a jam-sized contact set).
 
 use bevy_soft_tissue::core_prelude::*;
 use bevy_soft_tissue::mesh::generate::LENS_RADII;
@@ -106,7 +106,88 @@ fn bench_backward(c: &mut Criterion) {
             f.backward_single(&mut y)
         })
     });
+    let b6: Vec<[Vec3; 6]> = (0..n)
+        .map(|i| std::array::from_fn(|c| v3(1.0, -0.5 * c as f64, 0.25 * i as f64)))
+        .collect();
+    let (mut x6, mut t6) = (b6.clone(), b6.clone());
+    c.bench_function("lens_solve_many6", |b| {
+        b.iter(|| f.solve_many(&b6, &mut x6, &mut t6))
+    });
 }
 
-criterion_group!(benches, bench, bench_assemble, bench_backward);
+/// `W` of the lens from its factor for a jam-sized contact set: 160
+/// contacts (480 rows) on 240 nodes of one side, every other contact on two
+/// nodes. `lens_w_cached`: every column and Gram block cached (the Gram
+/// lookups and the contraction with `J`); `lens_w_new_factor`: the cache
+/// forgotten first, as with a new factor (the columns and Gram blocks solved
+/// too).
+fn bench_compliance(c: &mut Criterion) {
+    use bevy_soft_tissue::contact::{BodyCompliance, ComplianceMode, JacEntry, tangent_basis};
+    use bevy_soft_tissue::solver::columns::ColumnPrefetch;
+    let (mut body, _) = lens_body(PreconditionerKind::Periodic { every: 1 });
+    body.step(0.02).expect("step");
+    let mut side: Vec<usize> = (0..body.num_nodes()).collect();
+    let x = body.positions();
+    side.sort_by(|&a, &b| x[b].x.total_cmp(&x[a].x));
+    let mut entries = Vec::new();
+    for contact in 0..160usize {
+        let n = v3(
+            1.0,
+            0.1 * (contact % 7) as f64,
+            -0.05 * (contact % 5) as f64,
+        )
+        .normalize();
+        let [t1, t2] = tangent_basis(&n);
+        let nodes: &[(usize, f64)] = if contact % 2 == 0 {
+            &[(side[contact], 0.6), (side[160 + contact / 2], 0.4)]
+        } else {
+            &[(side[contact], 1.0)]
+        };
+        for (r, dir) in [n, t1, t2].into_iter().enumerate() {
+            for &(node, weight) in nodes {
+                entries.push(JacEntry {
+                    node: node as u32,
+                    row: (3 * contact + r) as u32,
+                    h: dir * weight,
+                    j: Vec3::zeros(),
+                });
+            }
+        }
+    }
+    entries.sort_by_key(|e| (e.node, e.row));
+    let m = 480;
+    let mut w = vec![0.0; m * m];
+    let mut comp = BodyCompliance::new();
+    let mut prefetch = ColumnPrefetch::default();
+    let mut build = |comp: &mut BodyCompliance, w: &mut Vec<f64>| {
+        w.fill(0.0);
+        comp.accumulate(
+            &body,
+            &mut prefetch,
+            ComplianceMode::Factorized,
+            0.02,
+            &mut entries,
+            w,
+            m,
+            None,
+        )
+        .expect("compliance")
+    };
+    build(&mut comp, &mut w);
+    c.bench_function("lens_w_cached", |b| b.iter(|| build(&mut comp, &mut w)));
+    c.bench_function("lens_w_new_factor", |b| {
+        b.iter(|| {
+            comp.forget_columns();
+            build(&mut comp, &mut w)
+        })
+    });
+}
+
+criterion_group!(
+    benches,
+    bench,
+    bench_assemble,
+    bench_backward,
+    bench_compliance
+);
 criterion_main!(benches);
