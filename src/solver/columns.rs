@@ -310,32 +310,22 @@ impl ColumnCache {
         }
     }
 
-    /// Asks the CPU to fetch the cached Gram block of columns `a` and `b`
-    /// (a hint only: [`Self::gram`] reads it a few pairs later; the blocks
-    /// of many columns spread over megabytes and miss the cache).
+    /// The Gram block `G_ab = Z_aᵀ D⁻¹ Z_b` of columns `a` and `b`: from the
+    /// cache (inlined: a build reads thousands), or computed now.
     #[inline]
-    pub(crate) fn prefetch_gram(&self, a: u32, b: u32) {
-        #[cfg(target_arch = "x86_64")]
-        {
-            if let Some(p) = self.pairs.get(pair_slot(a, b)) {
-                use std::arch::x86_64::{_MM_HINT_T0, _mm_prefetch};
-                // SAFETY: a prefetch never faults, and the address is of a live element.
-                #[allow(unused_unsafe)]
-                unsafe {
-                    _mm_prefetch::<_MM_HINT_T0>((p as *const Option<Mat3>).cast::<i8>());
-                }
-            }
+    pub(crate) fn gram(&mut self, a: u32, b: u32) -> Mat3 {
+        match self.pairs[pair_slot(a, b)] {
+            Some(g) if a <= b => g,
+            Some(g) => g.transpose(),
+            None => self.gram_new(a, b),
         }
-        #[cfg(not(target_arch = "x86_64"))]
-        let _ = (a, b);
     }
 
-    pub(crate) fn gram(&mut self, a: u32, b: u32) -> Mat3 {
+    /// [`Self::gram`] of a pair not cached yet: computes and caches it.
+    #[inline(never)]
+    fn gram_new(&mut self, a: u32, b: u32) -> Mat3 {
         let key = (a.min(b), a.max(b));
         let slot = pair_slot(a, b);
-        if let Some(g) = self.pairs[slot] {
-            return if a <= b { g } else { g.transpose() };
-        }
         let (ca, cb) = (self.cols[key.0 as usize], self.cols[key.1 as usize]);
         let pa = &self.paths[ca.start..ca.start + ca.len];
         let pb = &self.paths[cb.start..cb.start + cb.len];

@@ -56,6 +56,17 @@ pub(super) struct Scratch {
     pub(super) groups: Vec<(usize, usize)>,
     pub(super) by_row: Vec<u32>,
     pub(super) cols: Vec<u32>,
+    /// `Factorized`: the rows a body touches (ascending), the local number
+    /// of each row of `w` (`slot`) and of each entry's row (`local_of`), the
+    /// groups in the order of their column ids, one group's three rows of
+    /// `J G` over the local rows (`t`), and `W`'s pairs of groups over the
+    /// local rows, each once (`tri`).
+    pub(super) rows: Vec<u32>,
+    pub(super) slot: Vec<u32>,
+    pub(super) local_of: Vec<u32>,
+    pub(super) order: Vec<u32>,
+    pub(super) t: Vec<f64>,
+    pub(super) tri: Vec<f64>,
 }
 
 /// Runs of entries with the same node: `(start, end)` per node.

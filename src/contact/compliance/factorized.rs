@@ -195,9 +195,6 @@ impl FactorSource {
     }
 }
 
-/// How many node pairs ahead `accumulate` prefetches a Gram block.
-const PREFETCH_AHEAD: usize = 8;
-
 /// `W += h² J G Jᵀ` from the cached node columns and Gram blocks of the
 /// view's factor (solving the columns not cached yet). `scratch.groups` holds
 /// the node runs of `entries`.
@@ -233,21 +230,146 @@ pub(super) fn accumulate(
         // The next background factor precomputes these nodes' columns.
         prefetch.set_hint(sc.groups.iter().map(|&(s, _)| entries[s].node));
     }
-    // Both orders of each pair, so that every write runs along a row
-    // of `w` (the block of (gj, gi) is the cached one transposed).
-    for gi in 0..sc.groups.len() {
-        let (si, ei) = sc.groups[gi];
-        for gj in 0..sc.groups.len() {
-            if let Some(&ahead) = sc.cols.get(gj + PREFETCH_AHEAD) {
-                cache.prefetch_gram(sc.cols[gi], ahead);
+    // Each pair of groups once, read where the cache keeps it: with the
+    // groups in the order of their column ids, group `gj` takes the Gram
+    // blocks `G_{gi,gj}` of the groups `gi` before it (one run of the
+    // cache's row of `gj`) and sums `t_c[r] = Σ_{a in row r} (G_{gi,gj}ᵀ j_a
+    // h²)_c` over the rows this body touches (local numbers); each entry `b`
+    // of `gj` adds `Σ_c t_c j_{b,c}` to its row of `tri`, a long loop in
+    // vector lanes. `tri` holds each such `W_{ab}` once, so it goes into `w`
+    // with its transpose. A group with itself goes into `w` directly.
+    let g = sc.groups.len();
+    sc.rows.clear();
+    sc.rows.extend(entries.iter().map(|e| e.row));
+    sc.rows.sort_unstable();
+    sc.rows.dedup();
+    let k = sc.rows.len();
+    sc.slot.clear();
+    sc.slot.resize(m, u32::MAX);
+    for (i, &r) in sc.rows.iter().enumerate() {
+        sc.slot[r as usize] = i as u32;
+    }
+    sc.local_of.clear();
+    sc.local_of
+        .extend(entries.iter().map(|e| sc.slot[e.row as usize]));
+    sc.order.clear();
+    sc.order.extend(0..g as u32);
+    let cols = &sc.cols;
+    sc.order.sort_unstable_by_key(|&gi| cols[gi as usize]);
+    sc.tri.clear();
+    sc.tri.resize(k * k, 0.0);
+    sc.t.clear();
+    sc.t.resize(3 * k, 0.0);
+    for jj in 0..g {
+        let gj = sc.order[jj] as usize;
+        let cj = sc.cols[gj];
+        let (t0, rest) = sc.t.split_at_mut(k);
+        let (t1, t2) = rest.split_at_mut(k);
+        for &gi in &sc.order[..jj] {
+            let gi = gi as usize;
+            let gt = cache.gram(sc.cols[gi], cj).transpose() * h2;
+            let (si, ei) = sc.groups[gi];
+            for (e, &l) in entries[si..ei].iter().zip(&sc.local_of[si..ei]) {
+                let v = gt * e.j;
+                let l = l as usize;
+                t0[l] += v.x;
+                t1[l] += v.y;
+                t2[l] += v.z;
             }
-            let g = cache.gram(sc.cols[gi], sc.cols[gj]);
-            let (sj, ej) = sc.groups[gj];
-            for a in si..ei {
-                let ga = g.transpose() * entries[a].j * h2;
-                let wr = &mut w[entries[a].row as usize * m..][..m];
-                for b in sj..ej {
-                    wr[entries[b].row as usize] += ga.dot(&entries[b].j);
+        }
+        let (sj, ej) = sc.groups[gj];
+        if jj > 0 {
+            for (e, &l) in entries[sj..ej].iter().zip(&sc.local_of[sj..ej]) {
+                let out = &mut sc.tri[l as usize * k..][..k];
+                row_update(out, [&*t0, &*t1, &*t2], e.j);
+            }
+            // Back to zero for the next group: only the rows touched.
+            for &gi in &sc.order[..jj] {
+                let (si, ei) = sc.groups[gi as usize];
+                for &l in &sc.local_of[si..ei] {
+                    let l = l as usize;
+                    t0[l] = 0.0;
+                    t1[l] = 0.0;
+                    t2[l] = 0.0;
+                }
+            }
+        }
+        let gt = cache.gram(cj, cj).transpose() * h2;
+        for a in &entries[sj..ej] {
+            let v = gt * a.j;
+            let wr = &mut w[a.row as usize * m..][..m];
+            for b in &entries[sj..ej] {
+                wr[b.row as usize] += v.dot(&b.j);
+            }
+        }
+    }
+    mirror_into(&sc.tri, &sc.rows, w, m);
+}
+
+/// `out[l] += t[0][l] j.x + t[1][l] j.y + t[2][l] j.z` (slices of one
+/// length), in AVX2 lanes where the CPU has them.
+fn row_update(out: &mut [f64], t: [&[f64]; 3], j: Vec3) {
+    #[cfg(target_arch = "x86_64")]
+    if crate::math::has_avx2_fma() {
+        // SAFETY: the CPU supports the features the function is compiled for.
+        return unsafe { row_update_avx2(out, t, j) };
+    }
+    row_update_portable(out, t, j);
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn row_update_avx2(out: &mut [f64], t: [&[f64]; 3], j: Vec3) {
+    row_update_portable(out, t, j);
+}
+
+#[inline(always)]
+fn row_update_portable(out: &mut [f64], t: [&[f64]; 3], j: Vec3) {
+    let n = out.len();
+    let (a, b, c) = (&t[0][..n], &t[1][..n], &t[2][..n]);
+    for l in 0..n {
+        out[l] += a[l] * j.x + b[l] * j.y + c[l] * j.z;
+    }
+}
+
+/// `w[rows[i], rows[j]] += t[i, j] + t[j, i]` for the `k × k` row-major
+/// `t` (`k = rows.len()`, ascending), in tiles so that the transposed reads
+/// stay in cache.
+fn mirror_into(t: &[f64], rows: &[u32], w: &mut [f64], m: usize) {
+    const TILE: usize = 8;
+    let k = rows.len();
+    if k == 0 {
+        return;
+    }
+    let r0 = rows[0] as usize;
+    let contiguous = rows[k - 1] as usize - r0 == k - 1;
+    let mut tile = [[0.0; TILE]; TILE];
+    for i0 in (0..k).step_by(TILE) {
+        let ni = TILE.min(k - i0);
+        for j0 in (0..k).step_by(TILE) {
+            let nj = TILE.min(k - j0);
+            // tile[i][j] = t[i0 + i, j0 + j] + t[j0 + j, i0 + i]
+            for (i, tr) in tile.iter_mut().enumerate().take(ni) {
+                for (o, &v) in tr[..nj].iter_mut().zip(&t[(i0 + i) * k + j0..][..nj]) {
+                    *o = v;
+                }
+            }
+            for j in 0..nj {
+                let src = &t[(j0 + j) * k + i0..][..ni];
+                for (i, &v) in src.iter().enumerate() {
+                    tile[i][j] += v;
+                }
+            }
+            for (i, tr) in tile.iter().enumerate().take(ni) {
+                let wr = &mut w[rows[i0 + i] as usize * m..][..m];
+                if contiguous {
+                    for (o, &v) in wr[r0 + j0..r0 + j0 + nj].iter_mut().zip(&tr[..nj]) {
+                        *o += v;
+                    }
+                } else {
+                    for (&r, &v) in rows[j0..j0 + nj].iter().zip(&tr[..nj]) {
+                        wr[r as usize] += v;
+                    }
                 }
             }
         }
@@ -319,5 +441,105 @@ pub(super) fn correction(
             Some(q) => q[old] * v,
             None => v,
         };
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::body::BodySettings;
+    use crate::material::TissueMaterial;
+    use crate::math::test_value;
+    use crate::mesh::generate;
+    use crate::solver::PreconditionerKind;
+
+    /// `accumulate` visits each pair of node groups once and mirrors it; the
+    /// result must be, to round-off, `h² Σ_ab j_aᵀ G_ab j_b` over every
+    /// ordered pair of entries, added to what `w` held: for groups of one to
+    /// five entries, with the body's rows contiguous in `w` or spread among
+    /// rows of other bodies.
+    #[test]
+    fn each_pair_once_matches_every_ordered_pair() {
+        let mesh = generate::ellipsoid([2e-3, 2e-3, 1.5e-3], 4).unwrap();
+        let settings = BodySettings {
+            preconditioner: PreconditionerKind::Periodic { every: 1 },
+            ..Default::default()
+        };
+        let mut body = DeformableBody::new(mesh, TissueMaterial::default(), settings).unwrap();
+        body.step(0.01).unwrap();
+        let st = body.preconditioner().factor_state().unwrap();
+        let view = FactorView {
+            factor: &st.factor,
+            warp: None,
+            key: FactorKey::Preconditioner(st.version),
+        };
+        let n = body.num_nodes();
+        for spread in [1usize, 3] {
+            let mut entries = Vec::new();
+            let mut row = 0usize;
+            for c in 0..40usize {
+                // Contact `c` on one to five nodes, three rows each.
+                let nodes: Vec<u32> = (0..1 + c % 5)
+                    .map(|i| ((c * 7 + i * 13) % n) as u32)
+                    .collect();
+                for _ in 0..3 {
+                    for (i, &node) in nodes.iter().enumerate() {
+                        let v = |s| test_value(c * 31 + i * 5 + row, s);
+                        entries.push(JacEntry {
+                            node,
+                            row: (spread * row) as u32,
+                            h: Vec3::new(v(1), v(2), v(3)),
+                            j: Vec3::zeros(),
+                        });
+                    }
+                    row += 1;
+                }
+            }
+            // Repeated (node, row) pairs would be one entry in a build.
+            entries.sort_by_key(|e| (e.node, e.row));
+            entries.dedup_by_key(|e| (e.node, e.row));
+            let m = spread * row + 1;
+            view.fill_j(&mut entries);
+            let start: Vec<f64> = (0..m * m).map(|i| test_value(i, 9)).collect();
+            let mut w = start.clone();
+            let mut cache = ColumnCache::default();
+            let mut prefetch = ColumnPrefetch::default();
+            let mut sc = Scratch::default();
+            super::super::group(&entries, &mut sc.groups);
+            let h2 = 1e-4;
+            accumulate(
+                &view,
+                &mut cache,
+                &mut prefetch,
+                &mut sc,
+                h2,
+                &entries,
+                &mut w,
+                m,
+            );
+            let mut want = start.clone();
+            for a in &entries {
+                for b in &entries {
+                    let ca = cache.col_of_node[a.node as usize];
+                    let cb = cache.col_of_node[b.node as usize];
+                    let g = cache.gram(ca, cb);
+                    want[a.row as usize * m + b.row as usize] += a.j.dot(&(g * b.j)) * h2;
+                }
+            }
+            let scale = want
+                .iter()
+                .zip(&start)
+                .map(|(x, s)| (x - s).abs())
+                .fold(0.0, f64::max);
+            assert!(scale > 0.0);
+            for (i, (got, want)) in w.iter().zip(&want).enumerate() {
+                assert!(
+                    (got - want).abs() <= 1e-12 * scale,
+                    "spread {spread}, entry ({}, {}): {got:e} against {want:e}",
+                    i / m,
+                    i % m
+                );
+            }
+        }
     }
 }
