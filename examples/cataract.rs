@@ -192,8 +192,9 @@ fn headless(args: &Args, params: &CataractParams, config: SoftTissueConfig) -> E
             }
             if let (n, Some(ms)) = s.jam {
                 println!(
-                    "steps with more than 90 contacts (lens jammed in the slit): {n}, {:.1} steps/s",
-                    1e3 / ms
+                    "steps with more than 90 contacts (lens jammed in the slit): {n}, {:.1} steps/s, {:.0} contacts on average",
+                    1e3 / ms,
+                    s.contacts_jam
                 );
             }
             println!("contacts: median {}, max {}", s.contacts.0, s.contacts.1);

@@ -50,6 +50,8 @@ pub struct HeadlessSummary {
     pub mean_ms_jam: [f64; 8],
     /// Mean contact passes per jam step.
     pub passes_jam: f64,
+    /// Mean contacts per jam step (runs whose jams differ compare by it).
+    pub contacts_jam: f64,
     /// Mean node columns and Gram blocks the compliance computed on the
     /// stepping thread per jam step (the rest came from the cache or the
     /// background worker).
@@ -193,6 +195,7 @@ pub fn run_headless_recording(
     let mut band_sum = [0.0f64; 8];
     let mut jam_sum = [0.0f64; 8];
     let mut jam_passes = 0usize;
+    let mut jam_contacts = 0usize;
     let mut jam_columns = (0usize, 0usize);
     let mut band_cg = 0usize;
     let mut band_lcp = (0usize, 0usize);
@@ -243,6 +246,7 @@ pub fn run_headless_recording(
             jam.push(d.step_ms());
             lcp_sweeps.1 += d.lcp_first_iterations;
             jam_passes += d.contact_passes;
+            jam_contacts += d.contacts;
             jam_columns.0 += d.compliance_solves;
             jam_columns.1 += d.gram_blocks;
             for (acc, x) in jam_sum.iter_mut().zip(v) {
@@ -331,6 +335,7 @@ pub fn run_headless_recording(
         mean_ms_50_90: band_sum.map(|x| x / band_steps),
         mean_ms_jam: jam_sum.map(|x| x / jam.len().max(1) as f64),
         passes_jam: jam_passes as f64 / jam.len().max(1) as f64,
+        contacts_jam: jam_contacts as f64 / jam.len().max(1) as f64,
         columns_jam: (
             jam_columns.0 as f64 / jam.len().max(1) as f64,
             jam_columns.1 as f64 / jam.len().max(1) as f64,
