@@ -1,7 +1,7 @@
 //! One implicit step of the paper-size lens (1183 nodes, 5184 tets, nucleus 5× stiffer)
 //! for each preconditioner, while the lens is squeezed and twisted.
 //!
-//! Run: `cargo bench --bench step` (`-- lens_assemble` for the assembly alone, `-- lens_backward` for one backward sweep with the factor, `-- lens_solve_many6` for six right-hand sides at once, `-- lens_w` for `W` of a jam-sized contact set).
+//! Run: `cargo bench --bench step` (`-- lens_assemble` for the assembly alone, `-- lens_backward` for one backward sweep with the factor, `-- lens_solve_many6` for six right-hand sides at once (`-- lens_forward_many6` their forward half), `-- lens_w` for `W` of a jam-sized contact set).
 
 use bevy_soft_tissue::core_prelude::*;
 use bevy_soft_tissue::mesh::generate::LENS_RADII;
@@ -112,6 +112,9 @@ fn bench_backward(c: &mut Criterion) {
     let (mut x6, mut t6) = (b6.clone(), b6.clone());
     c.bench_function("lens_solve_many6", |b| {
         b.iter(|| f.solve_many(&b6, &mut x6, &mut t6))
+    });
+    c.bench_function("lens_forward_many6", |b| {
+        b.iter(|| f.forward_many(&b6, &mut x6))
     });
 }
 

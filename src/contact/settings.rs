@@ -82,7 +82,7 @@ pub struct ContactSettings {
     /// stores energy the LCP did not account for. With this on, `W` and the
     /// correction use the two-level inverse `Q + (I − QA) P⁻¹ (I − AQ)`,
     /// `Q = Z (Zᵀ A Z)⁻¹ Zᵀ` over the six rigid modes `Z`: exact on them,
-    /// the factor for the deformation. It costs six solves with the factor
+    /// the factor for the deformation. It costs six forward sweeps with the factor
     /// per body and step in contact, and a rank-12 update of `W`. On by
     /// default.
     pub rigid_modes: bool,

@@ -536,18 +536,42 @@ impl LdltFactor {
         for k in 0..s.n {
             tmp[k] = b[s.perm[k]];
         }
-        #[cfg(target_arch = "x86_64")]
-        if has_avx2_fma() {
-            // SAFETY: the CPU supports the features the function is compiled for.
-            unsafe { self.sweeps_many_avx2(tmp) };
-        } else {
-            self.sweeps_many(tmp);
-        }
-        #[cfg(not(target_arch = "x86_64"))]
-        self.sweeps_many(tmp);
+        self.sweeps_many_with::<K, true, true>(tmp);
         for k in 0..s.n {
             x[s.perm[k]] = tmp[k];
         }
+    }
+
+    /// The forward half of [`Self::solve_many`]: `y_c = L⁻¹ P b_c` for `K`
+    /// right-hand sides at once (`b` in original numbering, `y` in permuted
+    /// numbering, neither `D` nor the backward sweep applied).
+    pub fn forward_many<const K: usize>(&self, b: &[[Vec3; K]], y: &mut [[Vec3; K]]) {
+        let s = &*self.symbolic;
+        for k in 0..s.n {
+            y[k] = b[s.perm[k]];
+        }
+        self.sweeps_many_with::<K, true, false>(y);
+    }
+
+    /// The other half: `y_c ← L⁻ᵀ y_c` for `K` right-hand sides in permuted
+    /// numbering, in place (`D` not applied).
+    pub fn backward_many<const K: usize>(&self, y: &mut [[Vec3; K]]) {
+        self.sweeps_many_with::<K, false, true>(y);
+    }
+
+    /// Sweeps of `K` right-hand sides in permuted numbering, in place: with
+    /// `FWD` the forward one, with `BWD` the backward one, with both `D`
+    /// between them.
+    fn sweeps_many_with<const K: usize, const FWD: bool, const BWD: bool>(
+        &self,
+        y: &mut [[Vec3; K]],
+    ) {
+        #[cfg(target_arch = "x86_64")]
+        if has_avx2_fma() {
+            // SAFETY: the CPU supports the features the function is compiled for.
+            return unsafe { self.sweeps_many_avx2::<K, FWD, BWD>(y) };
+        }
+        self.sweeps_many::<K, FWD, BWD>(y);
     }
 
     /// [`Self::sweeps_many`] with AVX2 and FMA. Forward: `y_r[c] -= L_p y_j[c]`
@@ -558,11 +582,14 @@ impl LdltFactor {
     /// accumulators stay in registers over the column.
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2,fma")]
-    fn sweeps_many_avx2<const K: usize>(&self, y: &mut [[Vec3; K]]) {
+    fn sweeps_many_avx2<const K: usize, const FWD: bool, const BWD: bool>(
+        &self,
+        y: &mut [[Vec3; K]],
+    ) {
         use std::arch::x86_64::*;
         let s = &*self.symbolic;
         let mut b = [[_mm256_setzero_pd(); 3]; K];
-        for j in 0..s.n {
+        for j in 0..if FWD { s.n } else { 0 } {
             let mut yj = y[j];
             for v in &mut yj {
                 *v = unit_lower_solve(&self.ldiag[j], v);
@@ -586,10 +613,15 @@ impl LdltFactor {
                 }
             }
         }
-        for (yk, d) in y.iter_mut().zip(&self.d) {
-            for v in yk.iter_mut() {
-                *v = v.component_div(d);
+        if FWD && BWD {
+            for (yk, d) in y.iter_mut().zip(&self.d) {
+                for v in yk.iter_mut() {
+                    *v = v.component_div(d);
+                }
             }
+        }
+        if !BWD {
+            return;
         }
         for j in (0..s.n).rev() {
             let mut acc = [_mm256_setzero_pd(); K];
@@ -619,12 +651,11 @@ impl LdltFactor {
         }
     }
 
-    /// Forward, diagonal and backward sweeps of `K` right-hand sides in
-    /// permuted numbering, in place.
+    /// The portable kernel of [`Self::sweeps_many_with`].
     #[inline(always)]
-    fn sweeps_many<const K: usize>(&self, y: &mut [[Vec3; K]]) {
+    fn sweeps_many<const K: usize, const FWD: bool, const BWD: bool>(&self, y: &mut [[Vec3; K]]) {
         let s = &*self.symbolic;
-        for j in 0..s.n {
+        for j in 0..if FWD { s.n } else { 0 } {
             let mut yj = y[j];
             for v in &mut yj {
                 *v = unit_lower_solve(&self.ldiag[j], v);
@@ -638,10 +669,15 @@ impl LdltFactor {
                 }
             }
         }
-        for (yk, d) in y.iter_mut().zip(&self.d) {
-            for v in yk.iter_mut() {
-                *v = v.component_div(d);
+        if FWD && BWD {
+            for (yk, d) in y.iter_mut().zip(&self.d) {
+                for v in yk.iter_mut() {
+                    *v = v.component_div(d);
+                }
             }
+        }
+        if !BWD {
+            return;
         }
         for j in (0..s.n).rev() {
             let mut acc = y[j];
@@ -899,7 +935,8 @@ mod tests {
         assert!(!f.has_single());
     }
 
-    /// Solving several right-hand sides at once gives what solving each gives.
+    /// Solving several right-hand sides at once gives what solving each gives,
+    /// and its forward and backward halves what the sweeps of each give.
     #[test]
     fn solve_many_matches_solve() {
         let (sym, f) = arbitrary_factor([2, 3, 4]);
@@ -920,10 +957,18 @@ mod tests {
         for k in 0..n {
             tmp[k] = b[sym.perm[k]];
         }
-        f.sweeps_many(&mut tmp);
+        f.sweeps_many::<3, true, true>(&mut tmp);
         for k in 0..n {
             portable[sym.perm[k]] = tmp[k];
         }
+        // The forward half alone, both kernels.
+        let mut fwd = vec![[Vec3::zeros(); 3]; n];
+        f.forward_many(&b, &mut fwd);
+        let mut fwd_portable = vec![[Vec3::zeros(); 3]; n];
+        for k in 0..n {
+            fwd_portable[k] = b[sym.perm[k]];
+        }
+        f.sweeps_many::<3, true, false>(&mut fwd_portable);
         let (mut one, mut scratch) = (vec![Vec3::zeros(); n], vec![Vec3::zeros(); n]);
         for c in 0..3 {
             let bc: Vec<Vec3> = b.iter().map(|r| r[c]).collect();
@@ -933,6 +978,25 @@ mod tests {
                 assert!((portable[i][c] - one[i]).norm() <= 1e-12 * (1.0 + one[i].norm()));
             }
             assert!(one.iter().zip(&bc).any(|(a, b)| (a - b).norm() > 1e-3));
+            let mut y: Vec<Vec3> = (0..n).map(|k| bc[sym.perm[k]]).collect();
+            f.forward(&mut y);
+            for k in 0..n {
+                assert!((fwd[k][c] - y[k]).norm() <= 1e-12 * (1.0 + y[k].norm()));
+                assert!((fwd_portable[k][c] - y[k]).norm() <= 1e-12 * (1.0 + y[k].norm()));
+            }
+            assert!(y.iter().zip(&one).any(|(a, b)| (a - b).norm() > 1e-3));
+            // The backward half alone (no `D`), both kernels, on the forward result.
+            let mut bwd = fwd.clone();
+            f.backward_many(&mut bwd);
+            let mut bwd_portable = fwd.clone();
+            f.sweeps_many::<3, false, true>(&mut bwd_portable);
+            let mut yb = y.clone();
+            f.backward(&mut yb);
+            for k in 0..n {
+                assert!((bwd[k][c] - yb[k]).norm() <= 1e-12 * (1.0 + yb[k].norm()));
+                assert!((bwd_portable[k][c] - yb[k]).norm() <= 1e-12 * (1.0 + yb[k].norm()));
+            }
+            assert!(yb.iter().zip(&y).any(|(a, b)| (a - b).norm() > 1e-3));
         }
     }
 

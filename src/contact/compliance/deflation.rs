@@ -22,18 +22,39 @@
 //!
 //! so with `U = H Z` and `V = H Y` (six columns each) `W` gains the rank-12
 //! term `h² (U B Uᵀ − V G Uᵀ − U G Vᵀ)` and the correction
-//! `h² (Z (B a − G b) − Y G a)` with `a = Uᵀ λ`, `b = Vᵀ λ`. `Y` costs six
-//! solves with the factor per step and body in contact; the rest is
-//! `O(n + m²)` with a factor six.
+//! `h² (Z (B a − G b) − Y G a)` with `a = Uᵀ λ`, `b = Vᵀ λ`.
+//!
+//! `Y` itself is never formed. With the factor `P = Q Pᵀ L D Lᵀ P Qᵀ` (warp
+//! `Q`, permutation `P`) and `F = L⁻¹ P Qᵀ A Z`, the forward half of six
+//! solves, `Y = Q Pᵀ L⁻ᵀ D⁻¹ F`, so
+//! - `S = Fᵀ D⁻¹ F`;
+//! - `V`'s row of an entry at node `k` is `jᵀ Z_kᵀ D⁻¹ F` with `Z_k` the
+//!   node's column (cached on its elimination-tree path for `W` already);
+//! - in the correction, `b = Fᵀ D⁻¹ y` and `Y G a` joins the backward sweep
+//!   it already runs: `Q Pᵀ L⁻ᵀ (D⁻¹ y − D⁻¹ F G a)`, `y` its forward part.
+//!
+//! That is six forward sweeps per step and body in contact instead of six
+//! solves; the rest is `O(n + m²)` with a factor six. Where `W` was built
+//! without the node columns (a [`super::ComplianceBackend`]), the rows of
+//! `V` come from six full solves instead.
 
 use nalgebra::{Matrix6, Vector6};
 
 use super::entries::JacEntry;
 use crate::body::DeformableBody;
 use crate::math::Vec3;
-use crate::solver::columns::FactorKey;
+use crate::solver::columns::{ColumnCache, FactorKey};
 
 use super::factorized::FactorView;
+
+/// Above this share of `L`'s blocks (the diagonal ones included), the node
+/// columns' paths of a build, summed, cost more than one backward sweep of
+/// the six right-hand sides, and `V` comes from the sweep: a path block
+/// costs six 3×3 products in scalar code, a block of the sweep eighteen
+/// fused multiply-adds in vector lanes. Measured on the cataract lens
+/// (66 000 blocks): the paths of a jam build (44 000 blocks) about 0.8 ms,
+/// the sweep about 0.5 ms, so about 55 against 22 cycles a block.
+const COLUMN_PATH_SHARE: f64 = 0.4;
 
 /// One body's rigid-mode completion, kept between passes of a step.
 #[derive(Debug, Default)]
@@ -41,18 +62,23 @@ pub(super) struct Deflation {
     /// The factor and step that `y`, `g`, `b` belong to; `None`: nothing valid.
     key: Option<(FactorKey, u64)>,
     /// Whether `Zᵀ A Z` was positive definite (no completion otherwise).
-    active: bool,
+    pub(super) active: bool,
     /// `Z` and `A Z`, interleaved by node (`z[i][k]`: mode `k` at node `i`).
     z: Vec<[Vec3; 6]>,
     az: Vec<[Vec3; 6]>,
-    y: [Vec<Vec3>; 6],
+    /// `D⁻¹ F`, in the factor's permuted numbering.
+    df: Vec<[Vec3; 6]>,
     g: Matrix6<f64>,
     b: Matrix6<f64>,
-    /// The six right-hand sides `Qᵀ A z`, their solutions and the solve's
-    /// scratch, interleaved by node (one solve reads the factor once).
+    /// The six right-hand sides `Qᵀ A z` (original numbering), and `F`.
     rhs: Vec<[Vec3; 6]>,
-    sol: Vec<[Vec3; 6]>,
-    work: Vec<[Vec3; 6]>,
+    f: Vec<[Vec3; 6]>,
+    /// Without node columns only: `L⁻ᵀ D⁻¹ F` (permuted numbering, `Qᵀ Y`
+    /// by node); `y_made` says it is this step's.
+    y: Vec<[Vec3; 6]>,
+    y_made: bool,
+    /// Tests: [`COLUMN_PATH_SHARE`] replaced.
+    pub(super) path_share: Option<f64>,
     /// Per pass: the rows this body touches, with their `U` and `V` rows.
     rows: Vec<u32>,
     u: Vec<Vector6<f64>>,
@@ -103,15 +129,16 @@ impl Deflation {
                 if k < 3 { e } else { e.cross(&(xi - c)) / len }
             })
         }));
-        // A Z (one pass over A for the six modes), Zᵀ A Z; y = P⁻¹ A Z;
-        // S = (A Z)ᵀ Y.
+        // A Z (one pass over A for the six modes), Zᵀ A Z; F = L⁻¹ P Qᵀ A Z;
+        // S = Fᵀ D⁻¹ F.
         let a = body.system_matrix();
         let f = view.factor;
         let mut zaz = Matrix6::zeros();
         let mut s = Matrix6::zeros();
-        for buf in [&mut self.az, &mut self.rhs, &mut self.sol, &mut self.work] {
+        for buf in [&mut self.az, &mut self.rhs, &mut self.f, &mut self.df] {
             buf.resize(n, [Vec3::zeros(); 6]);
         }
+        self.y_made = false;
         a.mul_vecs(&self.z, &mut self.az);
         for i in 0..n {
             let (zi, azi) = (&self.z[i], &self.az[i]);
@@ -119,31 +146,21 @@ impl Deflation {
                 for l in 0..6 {
                     zaz[(l, k)] += zi[l].dot(&azi[k]);
                 }
-                // y = P⁻¹ (A z) with P⁻¹ = Q (L D Lᵀ)⁻¹ Qᵀ, as the compliance
-                // applies it.
+                // In the frame of the factor, as the compliance applies it.
                 self.rhs[i][k] = match view.warp {
                     Some(q) => q[i].transpose() * azi[k],
                     None => azi[k],
                 };
             }
         }
-        f.solve_many(&self.rhs, &mut self.sol, &mut self.work);
-        for k in 0..6 {
-            let y = &mut self.y[k];
-            y.resize(n, Vec3::zeros());
-            for i in 0..n {
-                y[i] = match view.warp {
-                    Some(q) => q[i] * self.sol[i][k],
-                    None => self.sol[i][k],
-                };
+        f.forward_many(&self.rhs, &mut self.f);
+        for ((fk, dfk), d) in self.f.iter().zip(&mut self.df).zip(&f.d) {
+            for c in 0..6 {
+                dfk[c] = fk[c].component_div(d);
             }
-        }
-        for i in 0..n {
-            let azi = &self.az[i];
             for k in 0..6 {
-                let yk = self.y[k][i];
                 for l in 0..6 {
-                    s[(l, k)] += azi[l].dot(&yk);
+                    s[(l, k)] += fk[l].dot(&dfk[k]);
                 }
             }
         }
@@ -162,27 +179,102 @@ impl Deflation {
         true
     }
 
-    /// `U = H Z` and `V = H Y` of the rows `entries` touch (`m` rows in all).
-    fn rows_of(&mut self, entries: &[JacEntry], m: usize) {
+    /// `Qᵀ Y` at original node `k` (the factor's frame): from `k`'s node
+    /// column, `Z_kᵀ D⁻¹ F` along its path, when `columns`; else from
+    /// `L⁻ᵀ D⁻¹ F`, one backward sweep of the six made once per step.
+    fn y_at(
+        &mut self,
+        view: &FactorView<'_>,
+        columns: Option<&ColumnCache>,
+        k: usize,
+    ) -> [Vec3; 6] {
+        if let Some(cache) = columns {
+            let cl = cache.cols[cache.col_of_node[k] as usize];
+            let mut out = [Vec3::zeros(); 6];
+            for t in cl.start..cl.start + cl.len {
+                let bt = cache.blocks[t].transpose();
+                let dfp = &self.df[cache.paths[t]];
+                for c in 0..6 {
+                    out[c] += bt * dfp[c];
+                }
+            }
+            return out;
+        }
+        if !self.y_made {
+            self.y.clear();
+            self.y.extend_from_slice(&self.df);
+            view.factor.backward_many(&mut self.y);
+            self.y_made = true;
+        }
+        self.y[view.factor.symbolic.iperm[k]]
+    }
+
+    /// Whether `rows_of` reads `V` from `cache`'s node columns: they hold
+    /// every node of `entries` for this view's factor, and their paths are
+    /// shorter than `share` of `L` ([`COLUMN_PATH_SHARE`]; beyond that one
+    /// backward sweep of all six costs less).
+    fn use_columns<'c>(
+        view: &FactorView<'_>,
+        cache: Option<&'c ColumnCache>,
+        entries: &[JacEntry],
+        share: f64,
+    ) -> Option<&'c ColumnCache> {
+        let cache = cache.filter(|c| c.key == Some(view.key))?;
+        let mut path = 0usize;
+        let mut last = u32::MAX;
+        for e in entries {
+            if e.node == last {
+                continue;
+            }
+            last = e.node;
+            let i = *cache.col_of_node.get(e.node as usize)?;
+            if i == u32::MAX {
+                return None;
+            }
+            path += cache.cols[i as usize].len;
+        }
+        let blocks = view.factor.symbolic.nnz_blocks() + view.factor.symbolic.n;
+        (path as f64 <= share * blocks as f64).then_some(cache)
+    }
+
+    /// `U = H Z` and `V = H Y` of the rows `entries` (sorted by node, `j`
+    /// filled) touch (`m` rows in all).
+    fn rows_of(
+        &mut self,
+        view: &FactorView<'_>,
+        cache: Option<&ColumnCache>,
+        entries: &[JacEntry],
+        m: usize,
+    ) {
         self.slot.clear();
         self.slot.resize(m, u32::MAX);
         self.rows.clear();
         self.u.clear();
         self.v.clear();
-        for e in entries {
-            let r = e.row as usize;
-            if self.slot[r] == u32::MAX {
-                self.slot[r] = self.rows.len() as u32;
-                self.rows.push(e.row);
-                self.u.push(Vector6::zeros());
-                self.v.push(Vector6::zeros());
+        let share = self.path_share.unwrap_or(COLUMN_PATH_SHARE);
+        let columns = Self::use_columns(view, cache, entries, share);
+        let mut s0 = 0;
+        while s0 < entries.len() {
+            let k = entries[s0].node as usize;
+            let y = self.y_at(view, columns, k);
+            let mut e1 = s0;
+            while e1 < entries.len() && entries[e1].node as usize == k {
+                let e = &entries[e1];
+                let r = e.row as usize;
+                if self.slot[r] == u32::MAX {
+                    self.slot[r] = self.rows.len() as u32;
+                    self.rows.push(e.row);
+                    self.u.push(Vector6::zeros());
+                    self.v.push(Vector6::zeros());
+                }
+                let s = self.slot[r] as usize;
+                for c in 0..6 {
+                    self.u[s][c] += e.h.dot(&self.z[k][c]);
+                    self.v[s][c] += e.j.dot(&y[c]);
+                }
+                e1 += 1;
             }
-            let s = self.slot[r] as usize;
-            let k = e.node as usize;
-            for c in 0..6 {
-                self.u[s][c] += e.h.dot(&self.z[k][c]);
-                self.v[s][c] += e.h.dot(&self.y[c][k]);
-            }
+            s0 = e1;
         }
     }
 
@@ -192,11 +284,20 @@ impl Deflation {
     /// the columns' `U` and `V` are laid out by component (in ascending row
     /// order) so the loop over `s` runs in vector lanes, each entry summed
     /// in the order of a 6-vector dot product.
-    pub(super) fn add_to_w(&mut self, entries: &[JacEntry], h2: f64, w: &mut [f64], m: usize) {
+    /// `cache`: the node columns `W` was built from, if it was.
+    pub(super) fn add_to_w(
+        &mut self,
+        view: &FactorView<'_>,
+        cache: Option<&ColumnCache>,
+        entries: &[JacEntry],
+        h2: f64,
+        w: &mut [f64],
+        m: usize,
+    ) {
         if !self.active {
             return;
         }
-        self.rows_of(entries, m);
+        self.rows_of(view, cache, entries, m);
         let k = self.rows.len();
         self.sorted.clear();
         self.sorted.extend_from_slice(&self.rows);
@@ -230,32 +331,48 @@ impl Deflation {
         }
     }
 
-    /// `dx += h² (Z (B a − G b) − Y G a)`, `a = Uᵀ λ`, `b = Vᵀ λ`.
-    pub(super) fn add_to_correction(
-        &self,
-        entries: &[JacEntry],
-        lambda: &[f64],
-        h2: f64,
-        dx: &mut [Vec3],
-    ) {
-        if !self.active {
-            return;
-        }
-        let (mut a, mut b) = (Vector6::zeros(), Vector6::zeros());
+    /// The correction's share (see the module docs), in three calls around
+    /// its sweeps: `a = Uᵀ λ` from `entries` (world `h`).
+    pub(super) fn modes_of(&self, entries: &[JacEntry], lambda: &[f64]) -> Vector6<f64> {
+        let mut a = Vector6::zeros();
         for e in entries {
-            let k = e.node as usize;
             let l = lambda[e.row as usize];
             for c in 0..6 {
-                a[c] += l * e.h.dot(&self.z[k][c]);
-                b[c] += l * e.h.dot(&self.y[c][k]);
+                a[c] += l * e.h.dot(&self.z[e.node as usize][c]);
             }
         }
+        a
+    }
+
+    /// `b = Fᵀ D⁻¹ y` of the correction's forward part `y` (permuted
+    /// numbering), then `y ← D⁻¹ y − D⁻¹ F G a`: what its backward sweep
+    /// turns into `(P⁻¹ Hᵀ λ − Y G a)`. Returns `b`.
+    pub(super) fn divide_and_shift(
+        &self,
+        d: &[Vec3],
+        a: &Vector6<f64>,
+        y: &mut [Vec3],
+    ) -> Vector6<f64> {
+        let mut b = Vector6::zeros();
+        let ga = self.g * a;
+        for ((yk, dfk), dk) in y.iter_mut().zip(&self.df).zip(d) {
+            let mut shift = Vec3::zeros();
+            for c in 0..6 {
+                b[c] += dfk[c].dot(yk);
+                shift += dfk[c] * ga[c];
+            }
+            *yk = yk.component_div(dk) - shift;
+        }
+        b
+    }
+
+    /// `dx += h² Z (B a − G b)`.
+    pub(super) fn add_modes(&self, a: &Vector6<f64>, b: &Vector6<f64>, h2: f64, dx: &mut [Vec3]) {
         let cz = (self.b * a - self.g * b) * h2;
-        let cy = self.g * a * h2;
-        for (i, d) in dx.iter_mut().enumerate() {
+        for (d, z) in dx.iter_mut().zip(&self.z) {
             let mut s = Vec3::zeros();
             for c in 0..6 {
-                s += self.z[i][c] * cz[c] - self.y[c][i] * cy[c];
+                s += z[c] * cz[c];
             }
             *d += s;
         }

@@ -5,6 +5,7 @@
 
 use std::sync::Arc;
 
+use super::deflation::Deflation;
 use super::entries::{ComplianceMode, JacEntry, Scratch};
 use crate::body::DeformableBody;
 use crate::error::{Result, SoftTissueError};
@@ -378,6 +379,9 @@ fn mirror_into(t: &[f64], rows: &[u32], w: &mut [f64], m: usize) {
 
 /// `dx = h² Q Pᵀ L⁻ᵀ D⁻¹ (Y λ)`: from the cached columns when `cache` holds
 /// every node of this view's factor, else with one full forward solve.
+/// With `deflation` (active, prepared for this view), the rigid-mode
+/// completion's share joins the sweep (see [`super::deflation`]).
+#[allow(clippy::too_many_arguments)]
 pub(super) fn correction(
     view: &FactorView<'_>,
     cache: Option<&ColumnCache>,
@@ -386,7 +390,9 @@ pub(super) fn correction(
     lambda: &[f64],
     sc: &mut Scratch,
     dx: &mut [Vec3],
+    deflation: Option<&Deflation>,
 ) {
+    let modes = deflation.map(|d| (d, d.modes_of(entries, lambda)));
     let f = view.factor;
     let sym = &*f.symbolic;
     let n = sym.n;
@@ -427,9 +433,15 @@ pub(super) fn correction(
         }
         f.forward(y);
     }
-    for k in 0..n {
-        y[k] = y[k].component_div(&f.d[k]);
-    }
+    let b = match &modes {
+        Some((d, a)) => Some(d.divide_and_shift(&f.d, a, y)),
+        None => {
+            for k in 0..n {
+                y[k] = y[k].component_div(&f.d[k]);
+            }
+            None
+        }
+    };
     // The backward sweep reads every block of `L`: with the preconditioner's
     // single-precision copy where it has one (half the memory; `W` and the
     // forward part stay in double precision).
@@ -441,6 +453,9 @@ pub(super) fn correction(
             Some(q) => q[old] * v,
             None => v,
         };
+    }
+    if let (Some((d, a)), Some(b)) = (modes, b) {
+        d.add_modes(&a, &b, h2, dx);
     }
 }
 

@@ -43,7 +43,7 @@
 //! correction of a free body with a lagging factor use the two-level inverse
 //! `Q + (I − QA) P⁻¹ (I − AQ)`, `Q = Z (Zᵀ A Z)⁻¹ Zᵀ` over its six rigid
 //! modes `Z`: exact on them, the factor for the rest. Both stay consistent
-//! (the same operator), it costs six solves with the factor per body and step
+//! (the same operator), it costs six forward sweeps with the factor per body and step
 //! and a rank-12 update of `W` (`deflation.rs`).
 //!
 //! ## Other modes
@@ -270,7 +270,8 @@ impl BodyCompliance {
                 if completes(self.rigid_modes, body, mode, &view)
                     && self.deflation.prepare(body, &view)
                 {
-                    self.deflation.add_to_w(entries, h2, w, m);
+                    let cache = (!on_backend).then_some(&self.cache);
+                    self.deflation.add_to_w(&view, cache, entries, h2, w, m);
                 }
                 Ok(())
             }
@@ -309,14 +310,260 @@ impl BodyCompliance {
                 let view = self.source.view(body, mode)?;
                 // Only `Factorized` builds leave this step's columns in the cache.
                 let cache = (mode == ComplianceMode::Factorized).then_some(&self.cache);
-                factorized::correction(&view, cache, h2, entries, lambda, &mut self.scratch, dx);
-                if completes(self.rigid_modes, body, mode, &view)
-                    && self.deflation.prepare(body, &view)
-                {
-                    self.deflation.add_to_correction(entries, lambda, h2, dx);
-                }
+                let deflation = (completes(self.rigid_modes, body, mode, &view)
+                    && self.deflation.prepare(body, &view))
+                .then_some(&self.deflation);
+                factorized::correction(
+                    &view,
+                    cache,
+                    h2,
+                    entries,
+                    lambda,
+                    &mut self.scratch,
+                    dx,
+                    deflation,
+                );
                 Ok(())
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::body::BodySettings;
+    use crate::fem::assembly::BlockCsr;
+    use crate::material::TissueMaterial;
+    use crate::math::{Mat3, test_value};
+    use crate::mesh::generate;
+    use crate::solver::PreconditionerKind;
+    use nalgebra::{DMatrix, DVector, Rotation3};
+
+    /// A free lens whose factor (taken at rest) lags a twisted, turned
+    /// state: the warp varies across it, so the completion matters.
+    fn twisted_lens() -> DeformableBody {
+        let mesh = generate::ellipsoid([2e-3, 2e-3, 1.5e-3], 3).unwrap();
+        let settings = BodySettings {
+            preconditioner: PreconditionerKind::Periodic { every: 1000 },
+            ..Default::default()
+        };
+        let mut body = DeformableBody::new(mesh, TissueMaterial::default(), settings).unwrap();
+        body.step(0.01).unwrap();
+        let x: Vec<Vec3> = body
+            .positions()
+            .iter()
+            .map(|p| Rotation3::from_axis_angle(&Vec3::z_axis(), 0.4 + 150.0 * p.z) * p)
+            .collect();
+        let v = vec![Vec3::zeros(); x.len()];
+        body.set_state(&x, &v).unwrap();
+        body.step(0.01).unwrap();
+        body
+    }
+
+    /// `(L D Lᵀ)⁻¹` of `f` densely, in original numbering (`warp` applied
+    /// as `Q (·) Qᵀ` when given).
+    fn dense_inverse(f: &LdltFactor, warp: Option<&[Mat3]>) -> DMatrix<f64> {
+        let n = f.symbolic.n;
+        let mut inv = DMatrix::zeros(3 * n, 3 * n);
+        let (mut b, mut x, mut tmp) = (
+            vec![Vec3::zeros(); n],
+            vec![Vec3::zeros(); n],
+            vec![Vec3::zeros(); n],
+        );
+        for i in 0..n {
+            for r in 0..3 {
+                b.fill(Vec3::zeros());
+                let mut e = Vec3::zeros();
+                e[r] = 1.0;
+                b[i] = warp.map_or(e, |q| q[i].transpose() * e);
+                f.solve(&b, &mut x, &mut tmp);
+                for k in 0..n {
+                    let xk = warp.map_or(x[k], |q| q[k] * x[k]);
+                    for c in 0..3 {
+                        inv[(3 * k + c, 3 * i + r)] = xk[c];
+                    }
+                }
+            }
+        }
+        inv
+    }
+
+    /// `Q + (I − Q A) P⁻¹ (I − A Q)`, `Q = Z (Zᵀ A Z)⁻¹ Zᵀ` over the six
+    /// rigid modes of `body` (as `deflation.rs` makes them).
+    fn two_level(body: &DeformableBody, a: &BlockCsr, pinv: &DMatrix<f64>) -> DMatrix<f64> {
+        let x = body.positions();
+        let mass = body.mass();
+        let n = x.len();
+        let mt: f64 = mass.iter().sum();
+        let c = x.iter().zip(mass).map(|(x, m)| x * *m).sum::<Vec3>() / mt;
+        let len = (x
+            .iter()
+            .zip(mass)
+            .map(|(x, m)| m * (x - c).norm_squared())
+            .sum::<f64>()
+            / mt)
+            .sqrt();
+        let z = DMatrix::from_fn(3 * n, 6, |row, k| {
+            let (i, r) = (row / 3, row % 3);
+            let mut e = Vec3::zeros();
+            e[k % 3] = 1.0;
+            let v = if k < 3 { e } else { e.cross(&(x[i] - c)) / len };
+            v[r]
+        });
+        let a = a.to_dense();
+        let g = (z.transpose() * &a * &z).try_inverse().unwrap();
+        let q = &z * g * z.transpose();
+        let id = DMatrix::<f64>::identity(3 * n, 3 * n);
+        &q + (&id - &q * &a) * pinv * (&id - &a * &q)
+    }
+
+    /// Adds `h² J (L D Lᵀ)⁻¹ Jᵀ` from a dense inverse, as a GPU backend
+    /// would add it: the completion then has no node columns to read.
+    struct Dense(DMatrix<f64>);
+
+    impl ComplianceBackend for Dense {
+        fn accumulate(
+            &mut self,
+            _: u64,
+            _: &LdltFactor,
+            _: FactorKey,
+            h: f64,
+            entries: &[JacEntry],
+            w: &mut [f64],
+            m: usize,
+        ) -> Result<bool> {
+            for a in entries {
+                for b in entries {
+                    let (i, k) = (3 * a.node as usize, 3 * b.node as usize);
+                    let blk = Mat3::from_fn(|r, c| self.0[(i + r, k + c)]);
+                    w[a.row as usize * m + b.row as usize] += h * h * a.j.dot(&(blk * b.j));
+                }
+            }
+            Ok(true)
+        }
+    }
+
+    /// With a lagging warped factor, `W` and the correction of a free body
+    /// are `h² H P_D⁻¹ Hᵀ` and `h² P_D⁻¹ Hᵀ λ` with the two-level inverse
+    /// `P_D⁻¹` formed densely, whether `W`'s rows of `V` come from the node
+    /// columns or from a backward sweep (chosen by cost, or because a
+    /// backend built `W` without the columns); without the
+    /// completion they are the factor's alone, which differs.
+    #[test]
+    fn completion_matches_the_dense_two_level_inverse() {
+        let body = twisted_lens();
+        let n = body.num_nodes();
+        let h = 0.01;
+        let mut entries = Vec::new();
+        let m = 24;
+        for row in 0..m {
+            for t in 0..1 + row % 3 {
+                let node = ((row * 11 + t * 29) % n) as u32;
+                let v = |s| test_value(row * 3 + t, s);
+                entries.push(JacEntry {
+                    node,
+                    row: row as u32,
+                    h: Vec3::new(v(1), v(2), v(3)),
+                    j: Vec3::zeros(),
+                });
+            }
+        }
+        entries.sort_by_key(|e| (e.node, e.row));
+        entries.dedup_by_key(|e| (e.node, e.row));
+        let hm = DMatrix::from_fn(m, 3 * n, |r, col| {
+            entries
+                .iter()
+                .filter(|e| e.row as usize == r && e.node as usize == col / 3)
+                .map(|e| e.h[col % 3])
+                .sum()
+        });
+        let lambda: Vec<f64> = (0..m).map(|r| test_value(r, 8).abs() + 0.5).collect();
+        let mut results = Vec::new();
+        // (completion, backend, share of `L` under which `V` reads the node
+        // columns: all of them, or none, the backward sweep).
+        let inf = f64::INFINITY;
+        for (rigid, backend, share) in [
+            (true, false, inf),
+            (true, false, 0.0),
+            (true, true, inf),
+            (false, false, inf),
+        ] {
+            let mut comp = BodyCompliance::new();
+            comp.rigid_modes = rigid;
+            comp.deflation.path_share = Some(share);
+            let mut prefetch = ColumnPrefetch::default();
+            let mut w = vec![0.0; m * m];
+            let mut dense = None;
+            if backend {
+                comp.source
+                    .refresh(&body, ComplianceMode::Factorized, 0, &mut comp.cache)
+                    .unwrap();
+                let view = comp.source.view(&body, ComplianceMode::Factorized).unwrap();
+                dense = Some(Dense(dense_inverse(view.factor, None)));
+            }
+            comp.accumulate(
+                &body,
+                &mut prefetch,
+                ComplianceMode::Factorized,
+                h,
+                &mut entries,
+                &mut w,
+                m,
+                dense.as_mut().map(|d| d as &mut dyn ComplianceBackend),
+            )
+            .unwrap();
+            let mut dx = Vec::new();
+            comp.correction(
+                &body,
+                ComplianceMode::Factorized,
+                h,
+                &entries,
+                &lambda,
+                &mut dx,
+            )
+            .unwrap();
+            let view = comp.source.view(&body, ComplianceMode::Factorized).unwrap();
+            assert!(view.warp.is_some(), "the factor lags with a warp");
+            assert_eq!(comp.deflation.active, rigid);
+            let mut pinv = dense_inverse(view.factor, view.warp);
+            if rigid {
+                pinv = two_level(&body, body.system_matrix(), &pinv);
+            }
+            let w_ref = &hm * &pinv * hm.transpose() * (h * h);
+            let dx_ref = &pinv * hm.transpose() * DVector::from_vec(lambda.clone()) * (h * h);
+            let scale = w_ref.abs().max();
+            for r in 0..m {
+                for c in 0..m {
+                    let d = (w[r * m + c] - w_ref[(r, c)]).abs();
+                    assert!(
+                        d <= 1e-9 * scale,
+                        "rigid {rigid}, backend {backend}, share {share}: W ({r}, {c}) off by {d:e} of {scale:e}"
+                    );
+                }
+            }
+            let dscale = dx_ref.abs().max();
+            for i in 0..n {
+                for c in 0..3 {
+                    // The backward sweep reads `L` in single precision.
+                    let d = (dx[i][c] - dx_ref[3 * i + c]).abs();
+                    assert!(
+                        d <= 1e-5 * dscale,
+                        "rigid {rigid}, backend {backend}, share {share}: dx off by {d:e} of {dscale:e}"
+                    );
+                }
+            }
+            results.push(w);
+        }
+        let diff = results[0]
+            .iter()
+            .zip(&results[3])
+            .map(|(a, b)| (a - b).abs())
+            .fold(0.0, f64::max);
+        let scale = results[3].iter().map(|v| v.abs()).fold(0.0, f64::max);
+        assert!(
+            diff > 1e-3 * scale,
+            "the completion changes W ({diff:e} of {scale:e})"
+        );
     }
 }
