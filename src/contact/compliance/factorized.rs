@@ -462,10 +462,7 @@ pub(super) fn correction(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::body::BodySettings;
-    use crate::material::TissueMaterial;
     use crate::math::test_value;
-    use crate::mesh::generate;
     use crate::solver::PreconditionerKind;
 
     /// `accumulate` visits each pair of node groups once and mirrors it; the
@@ -475,13 +472,7 @@ mod tests {
     /// rows of other bodies.
     #[test]
     fn each_pair_once_matches_every_ordered_pair() {
-        let mesh = generate::ellipsoid([2e-3, 2e-3, 1.5e-3], 4).unwrap();
-        let settings = BodySettings {
-            preconditioner: PreconditionerKind::Periodic { every: 1 },
-            ..Default::default()
-        };
-        let mut body = DeformableBody::new(mesh, TissueMaterial::default(), settings).unwrap();
-        body.step(0.01).unwrap();
+        let body = super::super::tests::lens(4, PreconditionerKind::Periodic { every: 1 });
         let st = body.preconditioner().factor_state().unwrap();
         let view = FactorView {
             factor: &st.factor,

@@ -340,16 +340,23 @@ mod tests {
     use crate::solver::PreconditionerKind;
     use nalgebra::{DMatrix, DVector, Rotation3};
 
-    /// A free lens whose factor (taken at rest) lags a twisted, turned
-    /// state: the warp varies across it, so the completion matters.
-    fn twisted_lens() -> DeformableBody {
-        let mesh = generate::ellipsoid([2e-3, 2e-3, 1.5e-3], 3).unwrap();
+    /// A small free lens (`cells` across) with preconditioner `kind`, after
+    /// one step (it has a factor).
+    pub(super) fn lens(cells: usize, kind: PreconditionerKind) -> DeformableBody {
+        let mesh = generate::ellipsoid([2e-3, 2e-3, 1.5e-3], cells).unwrap();
         let settings = BodySettings {
-            preconditioner: PreconditionerKind::Periodic { every: 1000 },
+            preconditioner: kind,
             ..Default::default()
         };
         let mut body = DeformableBody::new(mesh, TissueMaterial::default(), settings).unwrap();
         body.step(0.01).unwrap();
+        body
+    }
+
+    /// A free lens whose factor (taken at rest) lags a twisted, turned
+    /// state: the warp varies across it, so the completion matters.
+    fn twisted_lens() -> DeformableBody {
+        let mut body = lens(3, PreconditionerKind::Periodic { every: 1000 });
         let x: Vec<Vec3> = body
             .positions()
             .iter()
