@@ -40,12 +40,10 @@
 
 use nalgebra::{Matrix6, Vector6};
 
-use super::entries::JacEntry;
+use super::entries::{FactorView, JacEntry};
 use crate::body::DeformableBody;
 use crate::math::Vec3;
 use crate::solver::columns::{ColumnCache, FactorKey};
-
-use super::factorized::FactorView;
 
 /// Above this share of `L`'s blocks (the diagonal ones included), the node
 /// columns' paths of a build, summed, cost more than one backward sweep of

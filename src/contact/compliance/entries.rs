@@ -1,6 +1,9 @@
-//! The compliance's shared types: the mode, the Jacobian entry, scratch.
+//! The compliance's shared types: the mode, the Jacobian entry, the factor
+//! view, scratch.
 
-use crate::math::Vec3;
+use crate::math::{Mat3, Vec3};
+use crate::solver::columns::FactorKey;
+use crate::solver::ldlt::LdltFactor;
 
 /// How the contact compliance of a body is computed (see the module docs).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
@@ -45,6 +48,27 @@ pub struct JacEntry {
     pub h: Vec3,
     /// `Qᵀ h`, in the frame of the factor.
     pub j: Vec3,
+}
+
+/// The factor, warp and key that `W` and the correction of one step use.
+#[derive(Debug, Clone, Copy)]
+pub(super) struct FactorView<'a> {
+    pub(super) factor: &'a LdltFactor,
+    /// `Q_i = R_i R̂_iᵀ` per node, or `None` for the identity.
+    pub(super) warp: Option<&'a [Mat3]>,
+    pub(super) key: FactorKey,
+}
+
+impl FactorView<'_> {
+    /// `j = Qᵀ h`: the entries in the frame of the factor.
+    pub(super) fn fill_j(&self, entries: &mut [JacEntry]) {
+        for e in entries.iter_mut() {
+            e.j = match self.warp {
+                Some(q) => q[e.node as usize].transpose() * e.h,
+                None => e.h,
+            };
+        }
+    }
 }
 
 /// Reusable vectors.

@@ -6,33 +6,12 @@
 use std::sync::Arc;
 
 use super::deflation::Deflation;
-use super::entries::{ComplianceMode, JacEntry, Scratch};
+use super::entries::{ComplianceMode, FactorView, JacEntry, Scratch};
 use crate::body::DeformableBody;
 use crate::error::{Result, SoftTissueError};
 use crate::math::{Mat3, Vec3};
 use crate::solver::columns::{ColumnCache, ColumnPrefetch, FactorKey};
 use crate::solver::ldlt::{LdltFactor, LdltSymbolic};
-
-/// The factor, warp and key that `W` and the correction of one step use.
-#[derive(Debug, Clone, Copy)]
-pub(super) struct FactorView<'a> {
-    pub(super) factor: &'a LdltFactor,
-    /// `Q_i = R_i R̂_iᵀ` per node, or `None` for the identity.
-    pub(super) warp: Option<&'a [Mat3]>,
-    pub(super) key: FactorKey,
-}
-
-impl FactorView<'_> {
-    /// `j = Qᵀ h`: the entries in the frame of the factor.
-    pub(super) fn fill_j(&self, entries: &mut [JacEntry]) {
-        for e in entries.iter_mut() {
-            e.j = match self.warp {
-                Some(q) => q[e.node as usize].transpose() * e.h,
-                None => e.h,
-            };
-        }
-    }
-}
 
 /// A copy of the preconditioner's factor that `W` and the correction keep
 /// using for a few steps after the preconditioner moved on, so that the node

@@ -57,12 +57,14 @@
 
 //!
 //! ## Files
-//! One file per mode: `factorized.rs` (`Factorized` and `Exact`: the factor
-//! view, the snapshot for `factor_reuse`, cached node columns; `deflation.rs`
-//! the rigid-mode completion of a lagging one), `dense_rows.rs`,
-//! `diagonal.rs`, `rest.rs`. This file holds the types and the dispatch: every
-//! `match` on [`ComplianceMode`] is exhaustive, so a new mode is a compile
-//! error until each phase handles it.
+//! One file per mode: `factorized.rs` (`Factorized` and `Exact`: where the
+//! factor comes from, the snapshot for `factor_reuse`, `W` from cached node
+//! columns, the correction; `deflation.rs` the rigid-mode completion of a
+//! lagging factor), `dense_rows.rs`, `diagonal.rs`, `rest.rs`. `entries.rs`
+//! holds the types they share (the mode, the Jacobian entry, the factor
+//! view, scratch); this file the dispatch: every `match` on
+//! [`ComplianceMode`] is exhaustive, so a new mode is a compile error until
+//! each phase handles it.
 //!
 //! ## Which factor
 //! [`BodyCompliance::accumulate`] asks `FactorSource::view` (`factorized.rs`) once
@@ -86,7 +88,7 @@ mod entries;
 
 pub use crate::solver::columns::FactorKey;
 pub use entries::{ComplianceMode, JacEntry};
-use entries::{Scratch, group};
+use entries::{FactorView, Scratch, group};
 pub use rest::REST_PRECOMPUTED_MAX_NODES;
 
 /// Builds a body's compliance somewhere else than on the CPU (the GPU path of
@@ -128,12 +130,7 @@ pub struct BodyCompliance {
 /// Whether `W` and the correction of this view get the rigid-mode
 /// completion: `Factorized` with a factor that lags the matrix, for a body
 /// with no constrained node (one held in place has no soft rigid modes).
-fn completes(
-    on: bool,
-    body: &DeformableBody,
-    mode: ComplianceMode,
-    view: &factorized::FactorView<'_>,
-) -> bool {
+fn completes(on: bool, body: &DeformableBody, mode: ComplianceMode, view: &FactorView<'_>) -> bool {
     on && mode == ComplianceMode::Factorized
         && body.settings().preconditioner.needs_rotations()
         && body
@@ -153,7 +150,7 @@ fn prepare<'a>(
     body: &'a DeformableBody,
     mode: ComplianceMode,
     reuse: u64,
-) -> Result<factorized::FactorView<'a>> {
+) -> Result<FactorView<'a>> {
     source.refresh(body, mode, reuse, cache)?;
     source.view(body, mode)
 }
