@@ -42,17 +42,19 @@ use nalgebra::{Matrix6, Vector6};
 
 use super::entries::{FactorView, JacEntry};
 use crate::body::DeformableBody;
-use crate::math::Vec3;
+use crate::math::{Mat3, Vec3};
 use crate::solver::columns::{ColumnCache, FactorKey};
 
 /// Above this share of `L`'s blocks (the diagonal ones included), the node
 /// columns' paths of a build, summed, cost more than one backward sweep of
-/// the six right-hand sides, and `V` comes from the sweep: a path block
-/// costs six 3×3 products in scalar code, a block of the sweep eighteen
-/// fused multiply-adds in vector lanes. Measured on the cataract lens
-/// (66 000 blocks): the paths of a jam build (44 000 blocks) about 0.8 ms,
-/// the sweep about 0.5 ms, so about 55 against 22 cycles a block.
-const COLUMN_PATH_SHARE: f64 = 0.4;
+/// the six right-hand sides, and `V` comes from the sweep. Measured in the
+/// cataract scene (`--preconditioner lag2`, the lens's 66 000 blocks, jam
+/// builds' paths about 44 000): the completion's share of a jam build took
+/// 0.76–0.90 ms through the columns and 1.18–1.24 ms through the sweep,
+/// other builds 0.18–0.21 against 0.40–0.46 ms (two runs each, with
+/// [`path_products`] in AVX2 lanes; in scalar code the columns had cost
+/// 1.1 ms a jam build).
+const COLUMN_PATH_SHARE: f64 = 1.0;
 
 /// One body's rigid-mode completion, kept between passes of a step.
 #[derive(Debug, Default)]
@@ -188,15 +190,8 @@ impl Deflation {
     ) -> [Vec3; 6] {
         if let Some(cache) = columns {
             let cl = cache.cols[cache.col_of_node[k] as usize];
-            let mut out = [Vec3::zeros(); 6];
-            for t in cl.start..cl.start + cl.len {
-                let bt = cache.blocks[t].transpose();
-                let dfp = &self.df[cache.paths[t]];
-                for c in 0..6 {
-                    out[c] += bt * dfp[c];
-                }
-            }
-            return out;
+            let range = cl.start..cl.start + cl.len;
+            return path_products(&cache.blocks[range.clone()], &cache.paths[range], &self.df);
         }
         if !self.y_made {
             self.y.clear();
@@ -377,6 +372,60 @@ impl Deflation {
     }
 }
 
+/// `Σ_t B_tᵀ df[paths[t]][c]` for the six `c`: one node column's blocks
+/// `B_t` along its path against `D⁻¹ F`. In AVX2 lanes where the CPU has
+/// them.
+fn path_products(blocks: &[Mat3], paths: &[usize], df: &[[Vec3; 6]]) -> [Vec3; 6] {
+    #[cfg(target_arch = "x86_64")]
+    if crate::math::has_avx2_fma() {
+        // SAFETY: the CPU supports the features the function is compiled for.
+        return unsafe { path_products_avx2(blocks, paths, df) };
+    }
+    path_products_portable(blocks, paths, df)
+}
+
+fn path_products_portable(blocks: &[Mat3], paths: &[usize], df: &[[Vec3; 6]]) -> [Vec3; 6] {
+    let mut out = [Vec3::zeros(); 6];
+    for (b, &p) in blocks.iter().zip(paths) {
+        let bt = b.transpose();
+        for c in 0..6 {
+            out[c] += bt * df[p][c];
+        }
+    }
+    out
+}
+
+/// [`path_products`] with AVX2 and FMA: entry `i` of output `c` is the dot
+/// product of `B_t`'s column `i` with `df[p][c]`, kept lane-wise over the
+/// path and summed across lanes once at the end; three outputs at a time
+/// (nine accumulators), so the path is read twice.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+fn path_products_avx2(blocks: &[Mat3], paths: &[usize], df: &[[Vec3; 6]]) -> [Vec3; 6] {
+    use crate::math::x86;
+    use std::arch::x86_64::*;
+    let mut out = [Vec3::zeros(); 6];
+    for half in 0..2 {
+        let mut acc = [[_mm256_setzero_pd(); 3]; 3];
+        for (b, &p) in blocks.iter().zip(paths) {
+            let cols = x86::columns(b);
+            let d = &df[p];
+            for (c, acc_c) in acc.iter_mut().enumerate() {
+                let v = x86::load3(&d[3 * half + c]);
+                for i in 0..3 {
+                    acc_c[i] = _mm256_fmadd_pd(cols[i], v, acc_c[i]);
+                }
+            }
+        }
+        for (c, acc_c) in acc.iter().enumerate() {
+            for i in 0..3 {
+                out[3 * half + c][i] = x86::sum(acc_c[i]);
+            }
+        }
+    }
+    out
+}
+
 /// `out[j] += a·u_j − b·v_j` for the `k = out.len()` columns laid out in
 /// `soa` (see [`Deflation::add_to_w`]); each dot product summed in order,
 /// as `Vector6::dot` does.
@@ -423,6 +472,44 @@ fn rank12_row_portable(a: &Vector6<f64>, b: &Vector6<f64>, soa: &[f64], out: &mu
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The AVX2 path kernel (where the CPU has it) gives what the portable
+    /// one gives, to round-off, for paths of every length up to nine.
+    #[test]
+    fn path_products_kernels_agree() {
+        let val = crate::math::test_value;
+        let df: Vec<[Vec3; 6]> = (0..12)
+            .map(|p| std::array::from_fn(|c| Vec3::from_fn(|r, _| val(p * 18 + c * 3 + r, 1))))
+            .collect();
+        for len in 0..10 {
+            let blocks: Vec<Mat3> = (0..len)
+                .map(|t| Mat3::from_fn(|r, c| val(t * 9 + r * 3 + c, 2)))
+                .collect();
+            let paths: Vec<usize> = (0..len).map(|t| (t * 5) % 12).collect();
+            let fast = path_products(&blocks, &paths, &df);
+            let portable = path_products_portable(&blocks, &paths, &df);
+            let mut want = [Vec3::zeros(); 6];
+            for (b, &p) in blocks.iter().zip(&paths) {
+                for c in 0..6 {
+                    for i in 0..3 {
+                        want[c][i] += (0..3).map(|r| b[(r, i)] * df[p][c][r]).sum::<f64>();
+                    }
+                }
+            }
+            for c in 0..6 {
+                for (got, name) in [(fast[c], "fast"), (portable[c], "portable")] {
+                    let d = (got - want[c]).norm();
+                    assert!(
+                        d <= 1e-12 * (1.0 + want[c].norm()),
+                        "{name}, len {len}, c {c}: {d:e}"
+                    );
+                }
+            }
+            if len > 0 {
+                assert!(want.iter().any(|v| v.norm() > 1.0));
+            }
+        }
+    }
 
     /// The row kernel of `add_to_w` (AVX2 where the CPU has it) gives, to the
     /// bit, `a·u_j − b·v_j` with nalgebra's 6-vector dot products, which is
