@@ -35,8 +35,9 @@
 //!
 //! That is six forward sweeps per step and body in contact instead of six
 //! solves; the rest is `O(n + m²)` with a factor six. Where `W` was built
-//! without the node columns (a [`super::ComplianceBackend`]), the rows of
-//! `V` come from six full solves instead.
+//! without the node columns (a [`super::ComplianceBackend`]), or their
+//! paths add up to more than `L` ([`COLUMN_PATH_SHARE`]), the rows of `V`
+//! come from one backward sweep of the six instead.
 
 use nalgebra::{Matrix6, Vector6};
 
