@@ -210,6 +210,19 @@ pub(super) fn accumulate(
         // The next background factor precomputes these nodes' columns.
         prefetch.set_hint(sc.groups.iter().map(|&(s, _)| entries[s].node));
     }
+    contract(cache, sc, h2, entries, w, m);
+}
+
+/// `W += h² J G Jᵀ` of the groups in `sc.groups`, whose columns are
+/// `sc.cols` (all in `cache`).
+fn contract(
+    cache: &mut ColumnCache,
+    sc: &mut Scratch,
+    h2: f64,
+    entries: &[JacEntry],
+    w: &mut [f64],
+    m: usize,
+) {
     // Each pair of groups once, read where the cache keeps it: with the
     // groups in the order of their column ids, group `gj` takes the Gram
     // blocks `G_{gi,gj}` of the groups `gi` before it (one run of the
