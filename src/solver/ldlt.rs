@@ -545,8 +545,18 @@ impl LdltFactor {
     /// The forward half of [`Self::solve_many`]: `y_c = L⁻¹ P b_c` for `K`
     /// right-hand sides at once (`b` in original numbering, `y` in permuted
     /// numbering, neither `D` nor the backward sweep applied).
+    ///
+    /// # Panics
+    /// If `b` or `y` does not have one entry per node.
     pub fn forward_many<const K: usize>(&self, b: &[[Vec3; K]], y: &mut [[Vec3; K]]) {
         let s = &*self.symbolic;
+        assert!(
+            b.len() == s.n && y.len() == s.n,
+            "forward_many: {} and {} entries for {} nodes",
+            b.len(),
+            y.len(),
+            s.n
+        );
         for k in 0..s.n {
             y[k] = b[s.perm[k]];
         }
@@ -555,7 +565,15 @@ impl LdltFactor {
 
     /// The other half: `y_c ← L⁻ᵀ y_c` for `K` right-hand sides in permuted
     /// numbering, in place (`D` not applied).
+    ///
+    /// # Panics
+    /// If `y` does not have one entry per node.
     pub fn backward_many<const K: usize>(&self, y: &mut [[Vec3; K]]) {
+        assert_eq!(
+            y.len(),
+            self.symbolic.n,
+            "backward_many: one entry per node"
+        );
         self.sweeps_many_with::<K, false, true>(y);
     }
 
