@@ -4,6 +4,7 @@
 //! cargo run --release --example accuracy_study              # full (tens of minutes on 2 cores)
 //! cargo run --release --example accuracy_study -- --quick   # coarse, a few minutes
 //! cargo run --release --features gpu --example accuracy_study   # + the GPU in Fig. 4
+//! cargo run --release --features gpu --example accuracy_study -- --fig4-only
 //! ```
 //! Writes `results.csv`, `timeseries.csv`, `compliance.csv`, `growth.csv`,
 //! `validation.csv`, the figures (`fig3_error.png`, `pareto.png`,
@@ -37,6 +38,11 @@ struct Args {
     /// Leave out the cataract push.
     #[arg(long)]
     no_cataract: bool,
+    /// Only Fig. 4 (the compliance build against contacts, with the GPU
+    /// under `--features gpu`): `compliance.csv`, `fig4_compliance.png` and
+    /// `fig4.md`, in seconds rather than minutes.
+    #[arg(long)]
+    fig4_only: bool,
 }
 
 #[cfg(feature = "gpu")]
@@ -107,6 +113,22 @@ fn main() -> ExitCode {
         }
         Progress::Step => bar.inc(1),
     };
+    if args.fig4_only {
+        let fig4 = match full::fig4(&config, backend, &mut progress)
+            .and_then(|f| study::output::write_fig4(&f, &args.out).map(|()| f))
+        {
+            Ok(f) => f,
+            Err(e) => {
+                bar.abandon();
+                eprintln!("study failed: {e}");
+                return ExitCode::FAILURE;
+            }
+        };
+        bar.finish_and_clear();
+        print_fig4(&fig4);
+        println!("written to {}", args.out.display());
+        return ExitCode::SUCCESS;
+    }
     let report = match full::run(&config, backend, &mut progress) {
         Ok(r) => r,
         Err(e) => {
@@ -165,4 +187,27 @@ fn main() -> ExitCode {
         report.seconds
     );
     ExitCode::SUCCESS
+}
+
+/// Fig. 4's table on stdout.
+fn print_fig4(fig4: &full::Fig4) {
+    match &fig4.backend {
+        Ok(name) => println!("Fig. 4 (ms, median), GPU: {name}"),
+        Err(why) => println!("Fig. 4 (ms, median), GPU not measured: {why}"),
+    }
+    println!(
+        "{:>8} {:>10} {:>12} {:>12} {:>10} {:>10}",
+        "contacts", "DenseRows", "Fact. new", "Fact. cached", "Exact", "GPU"
+    );
+    for t in &fig4.timings {
+        println!(
+            "{:>8} {:>10.3} {:>12.3} {:>12.3} {:>10.3} {:>10}",
+            t.contacts,
+            t.dense_rows,
+            t.factorized_cold,
+            t.factorized_warm,
+            t.exact,
+            t.backend.map_or("–".into(), |b| format!("{b:.3}"))
+        );
+    }
 }

@@ -234,6 +234,18 @@ fn headless(args: &Args, params: &CataractParams, config: SoftTissueConfig) -> E
                     g.uploads,
                     per(g.upload_seconds, g.uploads)
                 );
+                if g.timed > 0 {
+                    let [f, gr, c] = g.kernel_seconds;
+                    println!(
+                        "GPU timestamps: {} builds, the device busy {:.3} ms each \
+                         (forward {:.3}, Gram {:.3}, contraction {:.3})",
+                        g.timed,
+                        per(g.span_seconds, g.timed),
+                        per(f, g.timed),
+                        per(gr, g.timed),
+                        per(c, g.timed)
+                    );
+                }
             }
             if let Some(r) = &recording {
                 println!(

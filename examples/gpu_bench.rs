@@ -45,14 +45,31 @@ fn main() -> bevy_soft_tissue::error::Result<()> {
     // The paper-size lens; its factor is never refreshed, so every build uses the same one.
     let mut body = lens_with_factor(12)?;
     println!("compliance build time (ms, median of 5), friction on");
+    if gpu.timestamps() {
+        println!(
+            "per GPU build, mean (ms): `wait` from submit to W mapped on the host; `busy` from the \
+             first kernel's start to the last one's end on the device (timestamps); the kernels"
+        );
+    } else {
+        println!("(this device has no timestamp queries: no busy and kernel columns)");
+    }
     println!(
-        "{:>8} {:>14} {:>10} {:>10} {:>10}",
-        "contacts", "CPU Factorized", "GPU", "GPU/CPU", "GPU wait"
+        "{:>8} {:>14} {:>10} {:>10} {:>10} {:>10} {:>10} {:>10} {:>10}",
+        "contacts",
+        "CPU Factorized",
+        "GPU",
+        "GPU/CPU",
+        "wait",
+        "busy",
+        "forward",
+        "gram",
+        "contract"
     );
     for n in [30, 60, 90, 130, 260] {
         let cs = pole_contacts(&body, n, v3(0.0, 0.0, -1.0), 0.3);
         let (mut cpu_t, mut gpu_t) = (Vec::new(), Vec::new());
         let (wait0, builds0) = (gpu.wait_seconds, gpu.built);
+        let (span0, kernels0, timed0) = (gpu.span_seconds, gpu.kernel_seconds, gpu.timed);
         for _ in 0..5 {
             // A new solver each time: no cached columns, W from the body's current factor.
             let build = |body: &mut DeformableBody,
@@ -74,7 +91,17 @@ fn main() -> bevy_soft_tissue::error::Result<()> {
         let (c, g) = (median(cpu_t), median(gpu_t));
         // Mean time the stepping thread waited for the device per GPU build.
         let wait = (gpu.wait_seconds - wait0) * 1e3 / (gpu.built - builds0).max(1) as f64;
-        println!("{n:>8} {c:>14.3} {g:>10.3} {:>10.2} {wait:>10.3}", g / c);
+        print!("{n:>8} {c:>14.3} {g:>10.3} {:>10.2} {wait:>10.3}", g / c);
+        // The device's own timing of the same builds, where it has timestamps.
+        let timed = (gpu.timed - timed0) as f64;
+        if timed > 0.0 {
+            let per = |now: f64, then: f64| (now - then) * 1e3 / timed;
+            print!(" {:>10.3}", per(gpu.span_seconds, span0));
+            for (now, then) in gpu.kernel_seconds.iter().zip(kernels0) {
+                print!(" {:>10.3}", per(*now, then));
+            }
+        }
+        println!();
     }
     Ok(())
 }

@@ -142,6 +142,31 @@ fn gpu_w_matches_cpu_w_on_lens_with_90_friction_contacts() {
         diff / scale
     );
     assert!(gpu.wait_seconds > 0.0 && gpu.compute_seconds >= gpu.wait_seconds);
+    // The device's timestamps: every build timed, the forward solves took
+    // time, and the device's busy span lies inside the host's wait.
+    if gpu.timestamps() {
+        assert_eq!(gpu.timed, gpu.built, "{gpu:?}");
+        assert!(
+            gpu.kernel_seconds
+                .iter()
+                .all(|t| t.is_finite() && *t >= 0.0)
+        );
+        assert!(
+            gpu.kernel_seconds[0] > 0.0 && gpu.span_seconds > 0.0,
+            "{gpu:?}"
+        );
+        assert!(gpu.span_seconds <= gpu.wait_seconds, "{gpu:?}");
+        println!(
+            "device time of {} builds: busy {:.3} ms, kernels {:?} ms, host wait {:.3} ms",
+            gpu.timed,
+            gpu.span_seconds * 1e3,
+            gpu.kernel_seconds.map(|t| t * 1e3),
+            gpu.wait_seconds * 1e3
+        );
+    } else {
+        println!("this device has no timestamp queries: kernel times not checked");
+        assert_eq!(gpu.timed, 0);
+    }
 }
 
 #[test]

@@ -6,6 +6,7 @@
 
 use std::path::PathBuf;
 
+use bevy_soft_tissue::contact::{ComplianceBackend, FactorKey, JacEntry};
 use bevy_soft_tissue::core_prelude::*;
 use bevy_soft_tissue::study::{self, StudyScene, cases::LensThroughHole, full, output};
 
@@ -99,10 +100,74 @@ fn quick_study_writes_every_output_with_the_papers_ordering() {
     assert_eq!(a.runs, 2);
     assert!(a.rms_error_range.0 <= a.rms_error_mean && a.rms_error_mean <= a.rms_error_range.1);
     // The other outputs have their rows.
-    assert_eq!(report.compliance.len(), 3);
+    assert_eq!(report.fig4.timings.len(), 3);
     assert!(report.growth.len() >= 4);
     assert!(report.growth_exponent.is_some_and(|p| p.is_finite()));
     assert_eq!(report.hertz.points.len(), 4);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// A backend that counts its calls and leaves every build to the CPU.
+struct Counting(usize);
+
+impl ComplianceBackend for Counting {
+    fn accumulate(
+        &mut self,
+        _: u64,
+        _: &bevy_soft_tissue::solver::ldlt::LdltFactor,
+        _: FactorKey,
+        _: f64,
+        _: &[JacEntry],
+        _: &mut [f64],
+        _: usize,
+    ) -> Result<bool> {
+        self.0 += 1;
+        Ok(false)
+    }
+}
+
+/// `accuracy_study --fig4-only`: Fig. 4 alone writes its table, figure and
+/// report, and times the backend it is given once per repeat and count.
+#[test]
+fn fig4_alone_writes_its_files_and_times_the_backend() {
+    let config = full::Config {
+        quick: true,
+        ..Default::default()
+    };
+    let mut backend = Counting(0);
+    let fig4 = full::fig4(
+        &config,
+        Ok((
+            "counting".into(),
+            &mut backend as &mut dyn ComplianceBackend,
+        )),
+        &mut |_| {},
+    )
+    .unwrap();
+    // Quick: 30, 60 and 90 contacts, three repeats each.
+    assert_eq!(backend.0, 9);
+    assert_eq!(
+        fig4.timings.iter().map(|t| t.contacts).collect::<Vec<_>>(),
+        [30, 60, 90]
+    );
+    for t in &fig4.timings {
+        let all = [t.dense_rows, t.factorized_cold, t.factorized_warm, t.exact];
+        assert!(all.iter().all(|v| v.is_finite() && *v > 0.0), "{t:?}");
+        assert!(t.backend.is_some_and(|b| b.is_finite() && b > 0.0), "{t:?}");
+    }
+    let dir = temp_dir("fig4");
+    output::write_fig4(&fig4, &dir).unwrap();
+    for f in output::FIG4_FILES {
+        let len = std::fs::metadata(dir.join(f)).map(|m| m.len()).unwrap_or(0);
+        assert!(len > 0, "{f} was not written");
+    }
+    let png = std::fs::read(dir.join("fig4_compliance.png")).unwrap_or_default();
+    assert!(png.starts_with(b"\x89PNG\r\n\x1a\n"), "no figure");
+    let csv = std::fs::read_to_string(dir.join("compliance.csv")).unwrap();
+    assert_eq!(csv.lines().count(), 1 + 3);
+    assert!(csv.lines().skip(1).all(|l| !l.ends_with(',')), "{csv}");
+    let md = std::fs::read_to_string(dir.join("fig4.md")).unwrap();
+    assert!(md.contains("Backend: counting.") && md.contains("](fig4_compliance.png)"));
     let _ = std::fs::remove_dir_all(&dir);
 }
 

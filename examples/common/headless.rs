@@ -94,6 +94,13 @@ pub struct GpuCounters {
     pub wait_seconds: f64,
     /// Seconds in the GPU builds in all.
     pub compute_seconds: f64,
+    /// Builds the device timed with timestamps (0 where it has none).
+    pub timed: u64,
+    /// Device seconds from the first kernel's start to the last one's end,
+    /// summed over the timed builds.
+    pub span_seconds: f64,
+    /// Device seconds of the forward, Gram and contraction kernels.
+    pub kernel_seconds: [f64; 3],
 }
 
 /// Where and from how many contacts the first-pass contact problems are
@@ -372,6 +379,9 @@ fn gpu_counters(app: &App) -> Option<GpuCounters> {
             upload_seconds: g.0.upload_seconds,
             wait_seconds: g.0.wait_seconds,
             compute_seconds: g.0.compute_seconds,
+            timed: g.0.timed,
+            span_seconds: g.0.span_seconds,
+            kernel_seconds: g.0.kernel_seconds,
         })
 }
 

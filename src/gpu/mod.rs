@@ -247,7 +247,33 @@ pub struct GpuCompliance {
     /// Seconds in [`Self::compute`] in all (host preparation, upload, wait and
     /// read-back).
     pub compute_seconds: f64,
+    /// GPU time of the three kernels (forward, Gram blocks, contraction),
+    /// seconds summed over the builds that were timed, from timestamps the
+    /// device writes at each kernel's start and end. Zero where the device
+    /// lacks `TIMESTAMP_QUERY` (see [`Self::timestamps`]).
+    pub kernel_seconds: [f64; 3],
+    /// GPU time from the first kernel's start to the last one's end, summed
+    /// over the timed builds: the device's busy span. What
+    /// [`Self::wait_seconds`] has beyond it is submission, scheduling, the
+    /// read-back copy, the fence wait and the mapping.
+    pub span_seconds: f64,
+    /// Builds timed by the device's timestamps.
+    pub timed: u64,
+    timer: Option<Timer>,
 }
+
+/// The device's timestamp queries around each kernel of a build: six
+/// timestamps (start and end of each kernel's pass) resolved into a buffer
+/// that is copied behind `W` in the read-back.
+struct Timer {
+    queries: wgpu::QuerySet,
+    resolve: wgpu::Buffer,
+    /// Nanoseconds per timestamp tick.
+    period_ns: f64,
+}
+
+/// Timestamps per build (start and end of three kernels).
+const TIMESTAMPS: u32 = 6;
 
 impl std::fmt::Debug for GpuCompliance {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
@@ -258,6 +284,9 @@ impl std::fmt::Debug for GpuCompliance {
             .field("upload_seconds", &self.upload_seconds)
             .field("wait_seconds", &self.wait_seconds)
             .field("compute_seconds", &self.compute_seconds)
+            .field("kernel_seconds", &self.kernel_seconds)
+            .field("span_seconds", &self.span_seconds)
+            .field("timed", &self.timed)
             .finish()
     }
 }
@@ -291,9 +320,30 @@ impl GpuCompliance {
     /// A builder on Bevy's render device and queue for bodies with at least
     /// `min_rows` constraint rows.
     pub fn new(device: RenderDevice, queue: RenderQueue, min_rows: usize) -> Self {
+        let timer = device
+            .features()
+            .contains(wgpu::Features::TIMESTAMP_QUERY)
+            .then(|| {
+                let d = device.wgpu_device();
+                Timer {
+                    queries: d.create_query_set(&wgpu::QuerySetDescriptor {
+                        label: Some("soft_tissue_compliance_timestamps"),
+                        ty: wgpu::QueryType::Timestamp,
+                        count: TIMESTAMPS,
+                    }),
+                    resolve: d.create_buffer(&wgpu::BufferDescriptor {
+                        label: Some("soft_tissue_compliance_timestamps"),
+                        size: u64::from(TIMESTAMPS) * 8,
+                        usage: wgpu::BufferUsages::QUERY_RESOLVE | wgpu::BufferUsages::COPY_SRC,
+                        mapped_at_creation: false,
+                    }),
+                    period_ns: f64::from(queue.get_timestamp_period()),
+                }
+            });
         Self {
             device,
             queue,
+            timer,
             pipelines: None,
             factors: HashMap::new(),
             step: StepBuffers::default(),
@@ -304,7 +354,18 @@ impl GpuCompliance {
             upload_seconds: 0.0,
             wait_seconds: 0.0,
             compute_seconds: 0.0,
+            kernel_seconds: [0.0; 3],
+            span_seconds: 0.0,
+            timed: 0,
         }
+    }
+
+    /// Whether the device times each build's kernels
+    /// ([`Self::kernel_seconds`], [`Self::span_seconds`]): it has
+    /// `TIMESTAMP_QUERY`, which Bevy's default settings enable where the
+    /// adapter offers it.
+    pub fn timestamps(&self) -> bool {
+        self.timer.is_some()
     }
 
     fn pipelines(&mut self) -> Result<&Pipelines> {
@@ -556,11 +617,19 @@ impl GpuCompliance {
             STORAGE,
             &st.ent_j,
         );
+        // `W`, then (8-byte aligned) the timestamps where the device has them.
+        let copy = w_bytes.max(4);
+        let stamps_at = copy.next_multiple_of(8);
+        let stamps_bytes = if self.timer.is_some() {
+            u64::from(TIMESTAMPS) * 8
+        } else {
+            0
+        };
         let readback = st.readback.ensure(
             device,
             "w_readback",
             wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
-            w_bytes,
+            stamps_at + stamps_bytes,
         );
         let pl = self
             .pipelines
@@ -616,31 +685,42 @@ impl GpuCompliance {
         let mut enc = device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
             label: Some("soft_tissue_compliance"),
         });
-        {
+        // One pass per kernel, so that each can carry its own timestamps.
+        let timer = self.timer.as_ref();
+        let writes = |i: u32| {
+            timer.map(|t| wgpu::ComputePassTimestampWrites {
+                query_set: &t.queries,
+                beginning_of_pass_write_index: Some(2 * i),
+                end_of_pass_write_index: Some(2 * i + 1),
+            })
+        };
+        let m_groups = ((m * m) as u32).div_ceil(64);
+        let kernels: [(&wgpu::ComputePipeline, &wgpu::BindGroup, [u32; 2]); 3] = [
+            (&pl.forward, &bg_forward, [k as u32, 1]),
+            (&pl.gram, &bg_gram, [k as u32, k as u32]),
+            (&pl.contract, &bg_contract, [m_groups, 1]),
+        ];
+        for (i, (pipeline, bg, [x, y])) in kernels.into_iter().enumerate() {
             let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
                 label: Some("soft_tissue_compliance"),
-                timestamp_writes: None,
+                timestamp_writes: writes(i as u32),
             });
-            if k > 0 {
-                pass.set_pipeline(&pl.forward);
-                pass.set_bind_group(0, &bg_forward, &[]);
-                pass.dispatch_workgroups(k as u32, 1, 1);
-                pass.set_pipeline(&pl.gram);
-                pass.set_bind_group(0, &bg_gram, &[]);
-                pass.dispatch_workgroups(k as u32, k as u32, 1);
-            }
-            if m > 0 {
-                pass.set_pipeline(&pl.contract);
-                pass.set_bind_group(0, &bg_contract, &[]);
-                pass.dispatch_workgroups(((m * m) as u32).div_ceil(64), 1, 1);
+            // An empty pass still writes its timestamps.
+            if x > 0 && y > 0 {
+                pass.set_pipeline(pipeline);
+                pass.set_bind_group(0, bg, &[]);
+                pass.dispatch_workgroups(x, y, 1);
             }
         }
-        let copy = w_bytes.max(4);
         enc.copy_buffer_to_buffer(w, 0, readback, 0, copy);
+        if let Some(t) = timer {
+            enc.resolve_query_set(&t.queries, 0..TIMESTAMPS, &t.resolve, 0);
+            enc.copy_buffer_to_buffer(&t.resolve, 0, readback, stamps_at, stamps_bytes);
+        }
         let submitted = Instant::now();
         self.queue.submit([enc.finish()]);
         self.dispatches += 3;
-        let slice = readback.slice(..copy);
+        let slice = readback.slice(..stamps_at + stamps_bytes);
         let (tx, rx) = crossbeam::channel::bounded(1);
         slice.map_async(wgpu::MapMode::Read, move |r| {
             let _ = tx.send(r);
@@ -656,8 +736,25 @@ impl GpuCompliance {
         st.out.clear();
         {
             let data = slice.get_mapped_range();
-            st.out
-                .extend_from_slice(&bytemuck::cast_slice::<u8, f32>(&data)[..m * m]);
+            st.out.extend_from_slice(
+                &bytemuck::cast_slice::<u8, f32>(&data[..copy as usize])[..m * m],
+            );
+            if let Some(t) = timer {
+                let at = stamps_at as usize;
+                let mut ticks = [0u64; TIMESTAMPS as usize];
+                for (tick, b) in ticks
+                    .iter_mut()
+                    .zip(data[at..at + stamps_bytes as usize].chunks_exact(8))
+                {
+                    *tick = u64::from_le_bytes(b.try_into().unwrap_or([0; 8]));
+                }
+                let secs = |a: u64, b: u64| b.saturating_sub(a) as f64 * t.period_ns * 1e-9;
+                for (i, kt) in self.kernel_seconds.iter_mut().enumerate() {
+                    *kt += secs(ticks[2 * i], ticks[2 * i + 1]);
+                }
+                self.span_seconds += secs(ticks[0], ticks[5]);
+                self.timed += 1;
+            }
         }
         readback.unmap();
         self.compute_seconds += t0.elapsed().as_secs_f64();

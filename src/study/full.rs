@@ -85,6 +85,18 @@ impl Machine {
     }
 }
 
+/// Fig. 4: the compliance build time against contacts.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Fig4 {
+    /// Build times per contact count.
+    pub timings: Vec<ComplianceTiming>,
+    /// Name of the compliance backend (the GPU) timed beside the CPU modes,
+    /// or why none was.
+    pub backend: std::result::Result<String, String>,
+    /// The machine it ran on.
+    pub machine: Machine,
+}
+
 /// Everything the study measured.
 #[derive(Debug, Clone, PartialEq)]
 pub struct StudyReport {
@@ -96,10 +108,8 @@ pub struct StudyReport {
     pub lens: CaseResult,
     /// The cataract push.
     pub cataract: Option<CaseResult>,
-    /// Fig. 4 timings.
-    pub compliance: Vec<ComplianceTiming>,
-    /// Name of the compliance backend timed in Fig. 4, or why none was.
-    pub backend: std::result::Result<String, String>,
+    /// Fig. 4.
+    pub fig4: Fig4,
     /// Growth with the mesh.
     pub growth: Vec<GrowthPoint>,
     /// Fitted exponent of step time against nodes.
@@ -110,6 +120,41 @@ pub struct StudyReport {
     pub hertz: HertzResult,
     /// Wall time of the whole study, seconds.
     pub seconds: f64,
+}
+
+/// Fig. 4 alone: the compliance build time against contacts for every CPU
+/// mode and `backend` (the GPU, with its name, or why there is none), at
+/// this config's size.
+/// [`run`] calls it; `accuracy_study --fig4-only` runs only this (the part
+/// worth running on a machine with a GPU).
+pub fn fig4(
+    config: &Config,
+    backend: std::result::Result<(String, &mut dyn ComplianceBackend), String>,
+    progress: &mut dyn FnMut(Progress),
+) -> Result<Fig4> {
+    let (counts, repeats): (&[usize], usize) = if config.quick {
+        (&[30, 60, 90], 3)
+    } else {
+        (&CONTACT_COUNTS, 7)
+    };
+    progress(Progress::Start {
+        label: "fig4 compliance",
+        repeat: 0,
+        steps: counts.len(),
+    });
+    let mut body = compliance::lens_with_factor(12)?;
+    let (name, be) = match backend {
+        Ok((n, b)) => (Ok(n), Some(b)),
+        Err(why) => (Err(why), None),
+    };
+    let timings = compliance::timings(&mut body, counts, repeats, be, &mut |_| {
+        progress(Progress::Step)
+    })?;
+    Ok(Fig4 {
+        timings,
+        backend: name,
+        machine: Machine::detect(),
+    })
 }
 
 /// Runs the whole study. `backend` is the GPU (or other) compliance path to
@@ -141,24 +186,7 @@ pub fn run(
         None
     };
 
-    let (counts, repeats): (&[usize], usize) = if config.quick {
-        (&[30, 60, 90], 3)
-    } else {
-        (&CONTACT_COUNTS, 7)
-    };
-    progress(Progress::Start {
-        label: "fig4 compliance",
-        repeat: 0,
-        steps: counts.len(),
-    });
-    let mut body = compliance::lens_with_factor(12)?;
-    let (name, be) = match backend {
-        Ok((n, b)) => (Ok(n), Some(b)),
-        Err(why) => (Err(why), None),
-    };
-    let compliance = compliance::timings(&mut body, counts, repeats, be, &mut |_| {
-        progress(Progress::Step)
-    })?;
+    let fig4 = fig4(config, backend, progress)?;
 
     let (cells, steps): (&[usize], usize) = if config.quick {
         (&[6, 8, 10, 12], 10)
@@ -193,8 +221,7 @@ pub fn run(
         machine,
         lens,
         cataract,
-        compliance,
-        backend: name,
+        fig4,
         growth,
         growth_exponent,
         cantilever,

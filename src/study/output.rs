@@ -13,7 +13,7 @@
 use std::fmt::Write as _;
 use std::path::Path;
 
-use super::full::StudyReport;
+use super::full::{Fig4, StudyReport};
 use super::{CaseResult, PARETO_MAX_PENETRATION, PHASES, VariantSummary, knee, pareto_front};
 use crate::error::{Result, SoftTissueError};
 
@@ -109,23 +109,7 @@ pub fn write(report: &StudyReport, dir: &Path) -> Result<()> {
     }
     put(dir, "timeseries.csv", &s)?;
 
-    let mut s = String::from(
-        "contacts,rows,dense_rows_ms,factorized_cold_ms,factorized_warm_ms,exact_ms,backend_ms\n",
-    );
-    for t in &report.compliance {
-        let _ = writeln!(
-            s,
-            "{},{},{:.4},{:.4},{:.4},{:.4},{}",
-            t.contacts,
-            3 * t.contacts,
-            t.dense_rows,
-            t.factorized_cold,
-            t.factorized_warm,
-            t.exact,
-            t.backend.map_or(String::new(), |b| format!("{b:.4}"))
-        );
-    }
-    put(dir, "compliance.csv", &s)?;
+    put(dir, "compliance.csv", &compliance_csv(&report.fig4))?;
 
     let mut s = String::from("cells,nodes,tets,nnz_l,factor_ms,step_ms,cg_iterations,factor_age\n");
     for g in &report.growth {
@@ -166,6 +150,99 @@ pub fn write(report: &StudyReport, dir: &Path) -> Result<()> {
     #[cfg(not(feature = "study"))]
     let figures: Vec<&str> = Vec::new();
     put(dir, "report.md", &markdown(report, &figures))
+}
+
+/// Fig. 4's table as CSV (`compliance.csv`).
+pub fn compliance_csv(fig4: &Fig4) -> String {
+    let mut s = String::from(
+        "contacts,rows,dense_rows_ms,factorized_cold_ms,factorized_warm_ms,exact_ms,backend_ms\n",
+    );
+    for t in &fig4.timings {
+        let _ = writeln!(
+            s,
+            "{},{},{:.4},{:.4},{:.4},{:.4},{}",
+            t.contacts,
+            3 * t.contacts,
+            t.dense_rows,
+            t.factorized_cold,
+            t.factorized_warm,
+            t.exact,
+            t.backend.map_or(String::new(), |b| format!("{b:.4}"))
+        );
+    }
+    s
+}
+
+/// Every file [`write_fig4`] creates (the figure only with the `study` feature).
+pub const FIG4_FILES: [&str; 2] = ["compliance.csv", "fig4.md"];
+
+/// Fig. 4 alone (`accuracy_study --fig4-only`): `compliance.csv`,
+/// `fig4_compliance.png` (with the `study` feature) and `fig4.md` into `dir`
+/// (created if missing).
+pub fn write_fig4(fig4: &Fig4, dir: &Path) -> Result<()> {
+    std::fs::create_dir_all(dir).map_err(|e| io(dir, e))?;
+    put(dir, "compliance.csv", &compliance_csv(fig4))?;
+    #[cfg(feature = "study")]
+    let figure = {
+        super::plots::compliance(fig4, &dir.join("fig4_compliance.png"))?;
+        true
+    };
+    #[cfg(not(feature = "study"))]
+    let figure = false;
+    let mut out = format!(
+        "# Fig. 4 alone\n\nOn {} ({} cores).\n\n",
+        fig4.machine.cpu, fig4.machine.cores
+    );
+    fig4_markdown(&mut out, fig4, figure);
+    put(dir, "fig4.md", &out)
+}
+
+/// Fig. 4's section of a report (`figure`: whether `fig4_compliance.png` was drawn).
+fn fig4_markdown(out: &mut String, fig4: &Fig4, figure: bool) {
+    let _ = writeln!(
+        out,
+        "## Fig. 4: compliance build time against contacts\n\nThe 1183-node lens, friction on \
+         (3 rows per contact), median of repeats, milliseconds.\n\n\
+         | contacts | DenseRows | Factorized (new factor) | Factorized (cached) | Exact | backend |\n|---|---|---|---|---|---|"
+    );
+    for t in &fig4.timings {
+        let _ = writeln!(
+            out,
+            "| {} | {:.3} | {:.3} | {:.3} | {:.3} | {} |",
+            t.contacts,
+            t.dense_rows,
+            t.factorized_cold,
+            t.factorized_warm,
+            t.exact,
+            t.backend.map_or("–".into(), |b| format!("{b:.3}"))
+        );
+    }
+    match &fig4.backend {
+        Ok(name) => {
+            let _ = writeln!(out, "\nBackend: {name}.\n");
+        }
+        Err(why) => {
+            let _ = writeln!(out, "\nGPU: not measured ({why}).\n");
+        }
+    }
+    if let (Some(a), Some(b)) = (fig4.timings.first(), fig4.timings.last()) {
+        let _ = writeln!(
+            out,
+            "`DenseRows` grows from {:.2} to {:.2} ms, `Factorized` with a new factor from {:.2} to {:.2} ms \
+             and with cached columns from {:.3} to {:.3} ms between {} and {} contacts.\n",
+            a.dense_rows,
+            b.dense_rows,
+            a.factorized_cold,
+            b.factorized_cold,
+            a.factorized_warm,
+            b.factorized_warm,
+            a.contacts,
+            b.contacts
+        );
+    }
+    if figure {
+        let _ = writeln!(out, "![fig4](fig4_compliance.png)\n");
+    }
 }
 
 fn summaries_ok(c: &CaseResult) -> Vec<VariantSummary> {
@@ -311,50 +388,7 @@ pub fn markdown(r: &StudyReport, figures: &[&str]) -> String {
             figures,
         );
     }
-    let _ = writeln!(
-        out,
-        "## Fig. 4: compliance build time against contacts\n\nThe 1183-node lens, friction on \
-         (3 rows per contact), median of repeats, milliseconds.\n\n\
-         | contacts | DenseRows | Factorized (new factor) | Factorized (cached) | Exact | backend |\n|---|---|---|---|---|---|"
-    );
-    for t in &r.compliance {
-        let _ = writeln!(
-            out,
-            "| {} | {:.3} | {:.3} | {:.3} | {:.3} | {} |",
-            t.contacts,
-            t.dense_rows,
-            t.factorized_cold,
-            t.factorized_warm,
-            t.exact,
-            t.backend.map_or("–".into(), |b| format!("{b:.3}"))
-        );
-    }
-    match &r.backend {
-        Ok(name) => {
-            let _ = writeln!(out, "\nBackend: {name}.\n");
-        }
-        Err(why) => {
-            let _ = writeln!(out, "\nGPU: not measured ({why}).\n");
-        }
-    }
-    if let (Some(a), Some(b)) = (r.compliance.first(), r.compliance.last()) {
-        let _ = writeln!(
-            out,
-            "`DenseRows` grows from {:.2} to {:.2} ms, `Factorized` with a new factor from {:.2} to {:.2} ms \
-             and with cached columns from {:.3} to {:.3} ms between {} and {} contacts.\n",
-            a.dense_rows,
-            b.dense_rows,
-            a.factorized_cold,
-            b.factorized_cold,
-            a.factorized_warm,
-            b.factorized_warm,
-            a.contacts,
-            b.contacts
-        );
-    }
-    if figures.contains(&"fig4_compliance.png") {
-        let _ = writeln!(out, "![fig4](fig4_compliance.png)\n");
-    }
+    fig4_markdown(&mut out, &r.fig4, figures.contains(&"fig4_compliance.png"));
     let _ = writeln!(
         out,
         "## Growth with the mesh\n\n| cells | nodes | nnz(L) | factorization ms | step ms | CG its | factor age |\n|---|---|---|---|---|---|---|"

@@ -14,7 +14,7 @@ use std::sync::Once;
 use plotters::coord::{CoordTranslate, Shift};
 use plotters::prelude::*;
 
-use super::full::StudyReport;
+use super::full::{Fig4, StudyReport};
 use super::{CaseResult, PARETO_MAX_PENETRATION, knee, pareto_front};
 use crate::error::{Result, SoftTissueError};
 
@@ -272,17 +272,17 @@ where
 }
 
 /// Fig. 4: compliance build time against contacts.
-pub fn compliance(report: &StudyReport, path: &Path) -> Result<()> {
+pub fn compliance(fig4: &Fig4, path: &Path) -> Result<()> {
     font();
     let root = area(path)?;
-    let t = &report.compliance;
+    let t = &fig4.timings;
     let x_end = t.iter().map(|c| c.contacts).max().unwrap_or(1) as f64 * 1.05;
     let y = log_range(t.iter().flat_map(|c| {
         [c.dense_rows, c.factorized_cold, c.factorized_warm, c.exact]
             .into_iter()
             .chain(c.backend)
     }));
-    let caption = match &report.backend {
+    let caption = match &fig4.backend {
         Ok(name) => format!("Compliance build, 1183-node lens, friction on (GPU: {name})"),
         Err(why) => {
             format!("Compliance build, 1183-node lens, friction on (GPU not measured: {why})")
@@ -372,7 +372,7 @@ pub fn write_all(report: &StudyReport, dir: &Path) -> Result<Vec<&'static str>> 
         pareto(c, &dir.join("cataract_pareto.png"))?;
         out.extend(["cataract_error.png", "cataract_pareto.png"]);
     }
-    compliance(report, &dir.join("fig4_compliance.png"))?;
+    compliance(&report.fig4, &dir.join("fig4_compliance.png"))?;
     growth(report, &dir.join("growth.png"))?;
     out.extend(["fig4_compliance.png", "growth.png"]);
     Ok(out)
