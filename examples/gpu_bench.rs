@@ -3,7 +3,10 @@
 //!
 //! ```text
 //! cargo run --release --features gpu --example gpu_bench
+//! cargo run --release --features gpu --example gpu_bench -- --global-walk
 //! ```
+//! `--global-walk` runs the forward solves in global memory (the kernel for
+//! paths too long for workgroup memory) instead of workgroup memory.
 //! On Mesa lavapipe (a CPU rasterizer) the numbers only show that the path
 //! works; GPU timings need a real GPU.
 
@@ -42,6 +45,15 @@ fn main() -> bevy_soft_tissue::error::Result<()> {
         println!("adapter: {} ({:?})", info.name, info.device_type);
     }
     let mut gpu = GpuCompliance::new(device.clone(), queue.clone(), 0);
+    gpu.shared_forward = !std::env::args().any(|a| a == "--global-walk");
+    println!(
+        "forward solves walked in {} memory",
+        if gpu.shared_forward {
+            "workgroup"
+        } else {
+            "global"
+        }
+    );
     // The paper-size lens; its factor is never refreshed, so every build uses the same one.
     let mut body = lens_with_factor(12)?;
     println!("compliance build time (ms, median of 5), friction on");

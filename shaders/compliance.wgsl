@@ -1,10 +1,12 @@
 // Contact compliance on the GPU: W = h² J (L D Lᵀ)⁻¹ Jᵀ for one body.
 //
 // Bindings are numbered across the module; each entry point uses its subset
-// (pipelines use automatic layouts). Three entry points, dispatched in order:
+// (pipelines use automatic layouts). Three kernels, dispatched in order:
 //   forward   — one workgroup per contact node: the reach-restricted forward
 //               solve Z_k = L⁻¹ E_k of the node's three unit columns, walking only
 //               the node's elimination-tree path (3×3 node supernodes);
+//               `forward_shared` (the walk in workgroup memory) where every
+//               path has at most MAXP nodes, `forward` (in global memory) else;
 //   gram      — one workgroup per pair of contact nodes (a ≤ b): the Gram block
 //               G_ab = Σ Z_aᵀ D⁻¹ Z_b over the common suffix of their paths;
 //   contract  — one invocation per entry of W: W_rs = h² Σ j_raᵀ G_ab j_sb.
@@ -103,6 +105,141 @@ fn forward(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_inde
             }
         }
         storageBarrier();
+        workgroupBarrier();
+    }
+}
+
+// The forward solves with the walk in workgroup memory, for paths of at most
+// MAXP nodes (the host uses `forward` for longer ones). Every row of column j
+// of L is an ancestor of j, so on the path: the right-hand side lives in
+// workgroup memory by path position, found by binary search over the sorted
+// path. The path's column ranges are read once up front, and each level's
+// column entries and diagonal block are loaded one level ahead, so a level
+// waits on workgroup memory and barriers rather than on global loads.
+// Workgroup memory: MAXP × 48 bytes + 40 (15 400 bytes, under WebGPU's
+// 16 384 minimum limit).
+const MAXP: u32 = 320u;
+
+var<workgroup> f_path: array<u32, 320>;
+var<workgroup> f_cp0: array<u32, 320>;
+var<workgroup> f_cp1: array<u32, 320>;
+var<workgroup> f_work: array<f32, 2880>;
+
+// The position of `node` in f_path[0..len) (sorted ascending; node is on it).
+fn path_pos(len: u32, node: u32) -> u32 {
+    var lo = 0u;
+    var hi = len;
+    while (lo + 1u < hi) {
+        let mid = (lo + hi) / 2u;
+        if (f_path[mid] <= node) {
+            lo = mid;
+        } else {
+            hi = mid;
+        }
+    }
+    return lo;
+}
+
+@compute @workgroup_size(64)
+fn forward_shared(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) lid: u32) {
+    let c = wid.x;
+    let pbase = c * params.stride;
+    if (lid == 0u) {
+        s_len = min(paths[pbase], MAXP);
+    }
+    let len = workgroupUniformLoad(&s_len);
+    for (var t = lid; t < len; t += WG) {
+        let j = paths[pbase + 1u + t];
+        f_path[t] = j;
+        f_cp0[t] = col_ptr[j];
+        f_cp1[t] = col_ptr[j + 1u];
+        for (var i = 0u; i < 9u; i++) {
+            // The unit columns at the path's first node.
+            f_work[t * 9u + i] = select(0.0, 1.0, t == 0u && i % 4u == 0u);
+        }
+    }
+    workgroupBarrier();
+    // Level 0's entries and diagonal block.
+    var nr = 0u;
+    var nl: array<f32, 9>;
+    var nok = false;
+    var nd = vec3<f32>(0.0, 0.0, 0.0);
+    if (len > 0u) {
+        let p = f_cp0[0] + lid;
+        nok = p < f_cp1[0];
+        if (nok) {
+            nr = row_idx[p];
+            for (var i = 0u; i < 9u; i++) {
+                nl[i] = lvals[p * 9u + i];
+            }
+        }
+        if (lid == 0u) {
+            let j = f_path[0];
+            nd = vec3<f32>(ldiag[j * 3u], ldiag[j * 3u + 1u], ldiag[j * 3u + 2u]);
+        }
+    }
+    for (var t = 0u; t < len; t++) {
+        let r0 = nr;
+        let l0 = nl;
+        let ok0 = nok;
+        let d = nd;
+        // Load the next level's entries while this one runs.
+        if (t + 1u < len) {
+            let p = f_cp0[t + 1u] + lid;
+            nok = p < f_cp1[t + 1u];
+            if (nok) {
+                nr = row_idx[p];
+                for (var i = 0u; i < 9u; i++) {
+                    nl[i] = lvals[p * 9u + i];
+                }
+            }
+            if (lid == 0u) {
+                let j = f_path[t + 1u];
+                nd = vec3<f32>(ldiag[j * 3u], ldiag[j * 3u + 1u], ldiag[j * 3u + 2u]);
+            }
+        }
+        if (lid == 0u) {
+            // z_j = L_jj⁻¹ work_j, L_jj unit lower triangular (l10, l20, l21).
+            for (var col = 0u; col < 3u; col++) {
+                let x0 = f_work[t * 9u + col * 3u];
+                let x1 = f_work[t * 9u + col * 3u + 1u] - d.x * x0;
+                let x2 = f_work[t * 9u + col * 3u + 2u] - d.y * x0 - d.z * x1;
+                s_z[col * 3u] = x0;
+                s_z[col * 3u + 1u] = x1;
+                s_z[col * 3u + 2u] = x2;
+                let o = (c * params.stride + t) * 9u + col * 3u;
+                zout[o] = x0;
+                zout[o + 1u] = x1;
+                zout[o + 2u] = x2;
+            }
+        }
+        workgroupBarrier();
+        // work_r -= L_rj z_j for the rows of column j (distinct rows: no conflicts):
+        // the first WG entries from the loads above, any further ones directly.
+        if (ok0) {
+            let q = path_pos(len, r0) * 9u;
+            for (var col = 0u; col < 3u; col++) {
+                for (var row = 0u; row < 3u; row++) {
+                    var acc = 0.0;
+                    for (var i = 0u; i < 3u; i++) {
+                        acc += l0[i * 3u + row] * s_z[col * 3u + i];
+                    }
+                    f_work[q + col * 3u + row] -= acc;
+                }
+            }
+        }
+        for (var p = f_cp0[t] + WG + lid; p < f_cp1[t]; p += WG) {
+            let q = path_pos(len, row_idx[p]) * 9u;
+            for (var col = 0u; col < 3u; col++) {
+                for (var row = 0u; row < 3u; row++) {
+                    var acc = 0.0;
+                    for (var i = 0u; i < 3u; i++) {
+                        acc += lvals[p * 9u + i * 3u + row] * s_z[col * 3u + i];
+                    }
+                    f_work[q + col * 3u + row] -= acc;
+                }
+            }
+        }
         workgroupBarrier();
     }
 }

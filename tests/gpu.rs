@@ -90,6 +90,8 @@ fn gpu_w_matches_cpu_w_on_lens_with_90_friction_contacts() {
     let (wg, m2) = on_gpu.delassus();
     assert_eq!(m, m2);
     assert!(gpu.dispatches >= 3 && gpu.built == 1, "{gpu:?}");
+    // The lens's paths fit the walk in workgroup memory.
+    assert_eq!(gpu.shared_forwards, 1, "{gpu:?}");
     let scale = wc.iter().fold(0.0f64, |a, v| a.max(v.abs()));
     let diff = wc
         .iter()
@@ -101,6 +103,24 @@ fn gpu_w_matches_cpu_w_on_lens_with_90_friction_contacts() {
         "relative difference {:e}",
         diff / scale
     );
+    // The walk in global memory (used for paths too long for workgroup
+    // memory) gives the same W.
+    gpu.shared_forward = false;
+    on_gpu
+        .build_compliance(&mut [&mut body], PassKind::First, Some(&mut gpu))
+        .unwrap();
+    assert_eq!((gpu.built, gpu.shared_forwards), (2, 1), "{gpu:?}");
+    let (wg, _) = on_gpu.delassus();
+    let diff = wc
+        .iter()
+        .zip(wg)
+        .fold(0.0f64, |a, (p, q)| a.max((p - q).abs()));
+    println!(
+        "walk in global memory: max |ΔW| / max |W| = {:.2e}",
+        diff / scale
+    );
+    assert!(diff <= 1e-4 * scale, "global walk: {:e}", diff / scale);
+    gpu.shared_forward = true;
     // A second build with the same factor reuses the uploaded factor.
     on_gpu
         .build_compliance(&mut [&mut body], PassKind::First, Some(&mut gpu))

@@ -122,8 +122,13 @@ pub fn add_headless_render(
 /// WGSL source of the compliance kernels.
 pub const SHADER: &str = include_str!("../../shaders/compliance.wgsl");
 
+/// The longest elimination-tree path `forward_shared` walks in workgroup
+/// memory (the shader's `MAXP`); builds with a longer path use `forward`.
+pub const SHARED_FORWARD_MAX_PATH: usize = 320;
+
 struct Pipelines {
     forward: wgpu::ComputePipeline,
+    forward_shared: wgpu::ComputePipeline,
     gram: wgpu::ComputePipeline,
     contract: wgpu::ComputePipeline,
 }
@@ -259,6 +264,12 @@ pub struct GpuCompliance {
     pub span_seconds: f64,
     /// Builds timed by the device's timestamps.
     pub timed: u64,
+    /// Walk the forward solves in workgroup memory (`forward_shared`) where
+    /// every path of the build has at most [`SHARED_FORWARD_MAX_PATH`] nodes
+    /// (default); `false` always walks them in global memory (`forward`).
+    pub shared_forward: bool,
+    /// Builds whose forward solves ran in workgroup memory.
+    pub shared_forwards: u64,
     timer: Option<Timer>,
 }
 
@@ -287,6 +298,7 @@ impl std::fmt::Debug for GpuCompliance {
             .field("kernel_seconds", &self.kernel_seconds)
             .field("span_seconds", &self.span_seconds)
             .field("timed", &self.timed)
+            .field("shared_forwards", &self.shared_forwards)
             .finish()
     }
 }
@@ -357,6 +369,8 @@ impl GpuCompliance {
             kernel_seconds: [0.0; 3],
             span_seconds: 0.0,
             timed: 0,
+            shared_forward: true,
+            shared_forwards: 0,
         }
     }
 
@@ -388,6 +402,7 @@ impl GpuCompliance {
             };
             let p = Pipelines {
                 forward: make("forward"),
+                forward_shared: make("forward_shared"),
                 gram: make("gram_blocks"),
                 contract: make("contract"),
             };
@@ -585,9 +600,16 @@ impl GpuCompliance {
         );
         let z =
             st.z.ensure(device, "z", STORAGE, (k * stride * 9 * 4) as u64);
-        let work = st
-            .work
-            .ensure(device, "work", STORAGE, (k * n as usize * 9 * 4) as u64);
+        // The walk in workgroup memory needs no `work` buffer (k × n blocks).
+        let shared = self.shared_forward && longest <= SHARED_FORWARD_MAX_PATH;
+        let work = if shared {
+            None
+        } else {
+            Some(
+                st.work
+                    .ensure(device, "work", STORAGE, (k * n as usize * 9 * 4) as u64),
+            )
+        };
         let gram = st
             .gram
             .ensure(device, "gram", STORAGE, (k * k * 9 * 4) as u64);
@@ -648,19 +670,26 @@ impl GpuCompliance {
                 resource: buf.as_entire_binding(),
             }
         }
-        let bg_forward = bind(
-            &pl.forward,
-            &[
-                e(0, params),
-                e(1, col_ptr),
-                e(2, row_idx),
-                e(3, lvals),
-                e(4, ldiag),
-                e(5, paths_buf),
-                e(6, z),
-                e(7, work),
-            ],
-        );
+        let forward_entries = [
+            e(0, params),
+            e(1, col_ptr),
+            e(2, row_idx),
+            e(3, lvals),
+            e(4, ldiag),
+            e(5, paths_buf),
+            e(6, z),
+        ];
+        let (forward, bg_forward) = match work {
+            None => (
+                &pl.forward_shared,
+                bind(&pl.forward_shared, &forward_entries),
+            ),
+            Some(work) => {
+                let [a, b, c, d, f, g, h] = forward_entries;
+                let entries = [a, b, c, d, f, g, h, e(7, work)];
+                (&pl.forward, bind(&pl.forward, &entries))
+            }
+        };
         let bg_gram = bind(
             &pl.gram,
             &[
@@ -696,7 +725,7 @@ impl GpuCompliance {
         };
         let m_groups = ((m * m) as u32).div_ceil(64);
         let kernels: [(&wgpu::ComputePipeline, &wgpu::BindGroup, [u32; 2]); 3] = [
-            (&pl.forward, &bg_forward, [k as u32, 1]),
+            (forward, &bg_forward, [k as u32, 1]),
             (&pl.gram, &bg_gram, [k as u32, k as u32]),
             (&pl.contract, &bg_contract, [m_groups, 1]),
         ];
@@ -720,6 +749,7 @@ impl GpuCompliance {
         let submitted = Instant::now();
         self.queue.submit([enc.finish()]);
         self.dispatches += 3;
+        self.shared_forwards += u64::from(shared);
         let slice = readback.slice(..stamps_at + stamps_bytes);
         let (tx, rx) = crossbeam::channel::bounded(1);
         slice.map_async(wgpu::MapMode::Read, move |r| {
@@ -786,5 +816,29 @@ impl ComplianceBackend for GpuCompliance {
         }
         self.built += 1;
         Ok(true)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The host's limit for the walk in workgroup memory is the shader's
+    /// `MAXP`, and the shader's workgroup arrays are sized by it.
+    #[test]
+    fn shared_forward_limit_matches_the_shader() {
+        let maxp = format!("const MAXP: u32 = {SHARED_FORWARD_MAX_PATH}u;");
+        assert!(SHADER.contains(&maxp), "shader lacks `{maxp}`");
+        for decl in [
+            format!("f_path: array<u32, {SHARED_FORWARD_MAX_PATH}>"),
+            format!("f_cp0: array<u32, {SHARED_FORWARD_MAX_PATH}>"),
+            format!("f_cp1: array<u32, {SHARED_FORWARD_MAX_PATH}>"),
+            format!("f_work: array<f32, {}>", 9 * SHARED_FORWARD_MAX_PATH),
+        ] {
+            assert!(SHADER.contains(&decl), "shader lacks `{decl}`");
+        }
+        // Within WebGPU's minimum workgroup storage (16 384 bytes), with
+        // `s_len` and `s_z` beside the four arrays.
+        assert!(SHARED_FORWARD_MAX_PATH * 4 * (3 + 9) + 4 + 36 <= 16_384);
     }
 }
