@@ -6,7 +6,9 @@
 //! cargo run --release --features gpu --example gpu_bench -- --global-walk
 //! ```
 //! `--global-walk` runs the forward solves in global memory (the kernel for
-//! paths too long for workgroup memory) instead of workgroup memory.
+//! paths too long for workgroup memory) instead of workgroup memory;
+//! `--upload-each` writes the factor to the device again before every GPU
+//! build, as when each step brings a new factor.
 //! On Mesa lavapipe (a CPU rasterizer) the numbers only show that the path
 //! works; GPU timings need a real GPU.
 
@@ -46,6 +48,10 @@ fn main() -> bevy_soft_tissue::error::Result<()> {
     }
     let mut gpu = GpuCompliance::new(device.clone(), queue.clone(), 0);
     gpu.shared_forward = !std::env::args().any(|a| a == "--global-walk");
+    let upload_each = std::env::args().any(|a| a == "--upload-each");
+    if upload_each {
+        println!("the factor is written to the device again before every GPU build");
+    }
     println!(
         "forward solves walked in {} memory",
         if gpu.shared_forward {
@@ -60,13 +66,13 @@ fn main() -> bevy_soft_tissue::error::Result<()> {
     if gpu.timestamps() {
         println!(
             "per GPU build, mean (ms): `wait` from submit to W mapped on the host; `busy` from the \
-             first kernel's start to the last one's end on the device (timestamps); the kernels"
+             first kernel's start to the last one's end on the device (timestamps); the kernels; `path` the longest path (nodes)"
         );
     } else {
         println!("(this device has no timestamp queries: no busy and kernel columns)");
     }
     println!(
-        "{:>8} {:>14} {:>10} {:>10} {:>10} {:>10} {:>10} {:>10} {:>10}",
+        "{:>8} {:>14} {:>10} {:>10} {:>10} {:>10} {:>10} {:>10} {:>10} {:>10}",
         "contacts",
         "CPU Factorized",
         "GPU",
@@ -75,7 +81,8 @@ fn main() -> bevy_soft_tissue::error::Result<()> {
         "busy",
         "forward",
         "gram",
-        "contract"
+        "contract",
+        "path"
     );
     for n in [30, 60, 90, 130, 260] {
         let cs = pole_contacts(&body, n, v3(0.0, 0.0, -1.0), 0.3);
@@ -98,6 +105,9 @@ fn main() -> bevy_soft_tissue::error::Result<()> {
                 Ok(t0.elapsed().as_secs_f64() * 1e3)
             };
             cpu_t.push(build(&mut body, None)?);
+            if upload_each {
+                gpu.invalidate_factors();
+            }
             gpu_t.push(build(&mut body, Some(&mut gpu))?);
         }
         let (c, g) = (median(cpu_t), median(gpu_t));
@@ -113,7 +123,7 @@ fn main() -> bevy_soft_tissue::error::Result<()> {
                 print!(" {:>10.3}", per(*now, then));
             }
         }
-        println!();
+        println!(" {:>10}", gpu.last_longest_path);
     }
     Ok(())
 }

@@ -270,6 +270,9 @@ pub struct GpuCompliance {
     pub shared_forward: bool,
     /// Builds whose forward solves ran in workgroup memory.
     pub shared_forwards: u64,
+    /// The longest elimination-tree path of the last build (nodes): the
+    /// forward kernel's serial depth.
+    pub last_longest_path: usize,
     timer: Option<Timer>,
 }
 
@@ -371,6 +374,7 @@ impl GpuCompliance {
             timed: 0,
             shared_forward: true,
             shared_forwards: 0,
+            last_longest_path: 0,
         }
     }
 
@@ -481,6 +485,15 @@ impl GpuCompliance {
         );
         self.uploads += 1;
         self.upload_seconds += t0.elapsed().as_secs_f64();
+    }
+
+    /// Marks every uploaded factor stale: the next build of each body writes
+    /// its factor again, into the same device buffers, as after a new factor
+    /// from the worker (`gpu_bench --upload-each` times builds this way).
+    pub fn invalidate_factors(&mut self) {
+        for up in self.factors.values_mut() {
+            up.key = None;
+        }
     }
 
     /// Forgets uploaded factors of bodies not in `alive`.
@@ -750,6 +763,7 @@ impl GpuCompliance {
         self.queue.submit([enc.finish()]);
         self.dispatches += 3;
         self.shared_forwards += u64::from(shared);
+        self.last_longest_path = longest;
         let slice = readback.slice(..stamps_at + stamps_bytes);
         let (tx, rx) = crossbeam::channel::bounded(1);
         slice.map_async(wgpu::MapMode::Read, move |r| {
