@@ -238,12 +238,17 @@ fn headless(args: &Args, params: &CataractParams, config: SoftTissueConfig) -> E
                     let [f, gr, c] = g.kernel_seconds;
                     println!(
                         "GPU timestamps: {} builds, the device busy {:.3} ms each \
-                         (forward {:.3}, Gram {:.3}, contraction {:.3})",
+                         (forward {:.3}, Gram {:.3}, contraction {:.3}); longest path \
+                         {:.1} nodes per build on average, {} at most; {} builds walked \
+                         in workgroup memory",
                         g.timed,
                         per(g.span_seconds, g.timed),
                         per(f, g.timed),
                         per(gr, g.timed),
-                        per(c, g.timed)
+                        per(c, g.timed),
+                        g.path_sum as f64 / g.builds.max(1) as f64,
+                        g.longest_path,
+                        g.shared_forwards
                     );
                 }
             }

@@ -101,6 +101,12 @@ pub struct GpuCounters {
     pub span_seconds: f64,
     /// Device seconds of the forward, Gram and contraction kernels.
     pub kernel_seconds: [f64; 3],
+    /// The longest path of any build (nodes).
+    pub longest_path: usize,
+    /// Each build's longest path, summed over the builds.
+    pub path_sum: u64,
+    /// Builds whose forward solves ran in workgroup memory.
+    pub shared_forwards: u64,
 }
 
 /// Where and from how many contacts the first-pass contact problems are
@@ -382,6 +388,9 @@ fn gpu_counters(app: &App) -> Option<GpuCounters> {
             timed: g.0.timed,
             span_seconds: g.0.span_seconds,
             kernel_seconds: g.0.kernel_seconds,
+            longest_path: g.0.longest_path,
+            path_sum: g.0.path_sum,
+            shared_forwards: g.0.shared_forwards,
         })
 }
 

@@ -270,9 +270,11 @@ pub struct GpuCompliance {
     pub shared_forward: bool,
     /// Builds whose forward solves ran in workgroup memory.
     pub shared_forwards: u64,
-    /// The longest elimination-tree path of the last build (nodes): the
+    /// The longest elimination-tree path of any build so far (nodes): the
     /// forward kernel's serial depth.
-    pub last_longest_path: usize,
+    pub longest_path: usize,
+    /// Each build's longest path (nodes), summed over the builds.
+    pub path_sum: u64,
     timer: Option<Timer>,
 }
 
@@ -374,7 +376,8 @@ impl GpuCompliance {
             timed: 0,
             shared_forward: true,
             shared_forwards: 0,
-            last_longest_path: 0,
+            longest_path: 0,
+            path_sum: 0,
         }
     }
 
@@ -763,7 +766,8 @@ impl GpuCompliance {
         self.queue.submit([enc.finish()]);
         self.dispatches += 3;
         self.shared_forwards += u64::from(shared);
-        self.last_longest_path = longest;
+        self.longest_path = self.longest_path.max(longest);
+        self.path_sum += longest as u64;
         let slice = readback.slice(..stamps_at + stamps_bytes);
         let (tx, rx) = crossbeam::channel::bounded(1);
         slice.map_async(wgpu::MapMode::Read, move |r| {
