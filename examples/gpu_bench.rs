@@ -8,7 +8,8 @@
 //! `--global-walk` runs the forward solves in global memory (the kernel for
 //! paths too long for workgroup memory) instead of workgroup memory;
 //! `--upload-each` writes the factor to the device again before every GPU
-//! build, as when each step brings a new factor.
+//! build, as when each step brings a new factor; `--idle-ms N` lets the
+//! device idle N ms before each GPU build, as between a scene's steps.
 //! On Mesa lavapipe (a CPU rasterizer) the numbers only show that the path
 //! works; GPU timings need a real GPU.
 
@@ -49,6 +50,15 @@ fn main() -> bevy_soft_tissue::error::Result<()> {
     let mut gpu = GpuCompliance::new(device.clone(), queue.clone(), 0);
     gpu.shared_forward = !std::env::args().any(|a| a == "--global-walk");
     let upload_each = std::env::args().any(|a| a == "--upload-each");
+    // `--idle-ms N`: the device idles N ms before each GPU build.
+    let idle_ms: u64 = std::env::args()
+        .skip_while(|a| a != "--idle-ms")
+        .nth(1)
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(0);
+    if idle_ms > 0 {
+        println!("the device idles {idle_ms} ms before each GPU build");
+    }
     if upload_each {
         println!("the factor is written to the device again before every GPU build");
     }
@@ -108,6 +118,7 @@ fn main() -> bevy_soft_tissue::error::Result<()> {
             if upload_each {
                 gpu.invalidate_factors();
             }
+            std::thread::sleep(std::time::Duration::from_millis(idle_ms));
             gpu_t.push(build(&mut body, Some(&mut gpu))?);
         }
         let (c, g) = (median(cpu_t), median(gpu_t));

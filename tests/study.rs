@@ -144,8 +144,9 @@ fn fig4_alone_writes_its_files_and_times_the_backend() {
         &mut |_| {},
     )
     .unwrap();
-    // Quick: 30, 60 and 90 contacts, three repeats each.
-    assert_eq!(backend.0, 9);
+    // Quick: 30, 60 and 90 contacts, three timed repeats each after the
+    // untimed warm-up builds; the backend declined every build.
+    assert_eq!(backend.0, 3 * (study::compliance::BACKEND_WARMUP + 3));
     assert_eq!(
         fig4.timings.iter().map(|t| t.contacts).collect::<Vec<_>>(),
         [30, 60, 90]
@@ -154,6 +155,7 @@ fn fig4_alone_writes_its_files_and_times_the_backend() {
         let all = [t.dense_rows, t.factorized_cold, t.factorized_warm, t.exact];
         assert!(all.iter().all(|v| v.is_finite() && *v > 0.0), "{t:?}");
         assert!(t.backend.is_some_and(|b| b.is_finite() && b > 0.0), "{t:?}");
+        assert_eq!(t.backend_builds, (0, 3), "{t:?}");
     }
     let dir = temp_dir("fig4");
     output::write_fig4(&fig4, &dir).unwrap();
@@ -164,10 +166,17 @@ fn fig4_alone_writes_its_files_and_times_the_backend() {
     let png = std::fs::read(dir.join("fig4_compliance.png")).unwrap_or_default();
     assert!(png.starts_with(b"\x89PNG\r\n\x1a\n"), "no figure");
     let csv = std::fs::read_to_string(dir.join("compliance.csv")).unwrap();
-    assert_eq!(csv.lines().count(), 1 + 3);
-    assert!(csv.lines().skip(1).all(|l| !l.ends_with(',')), "{csv}");
     let md = std::fs::read_to_string(dir.join("fig4.md")).unwrap();
-    assert!(md.contains("Backend: counting.") && md.contains("](fig4_compliance.png)"));
+    assert_eq!(csv.lines().count(), 1 + 3);
+    assert!(csv.lines().skip(1).all(|l| l.ends_with(",0,3")), "{csv}");
+    assert!(
+        md.contains("left 3 of its 3 timed builds to the CPU"),
+        "{md}"
+    );
+    assert!(
+        md.contains("Backend: counting, timed back to back")
+            && md.contains("](fig4_compliance.png)")
+    );
     let _ = std::fs::remove_dir_all(&dir);
 }
 
