@@ -107,7 +107,8 @@ fn quick_study_writes_every_output_with_the_papers_ordering() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
-/// A backend that counts its calls and leaves every build to the CPU.
+/// A backend that counts its calls and takes every build (adding nothing to
+/// `W`: only the timing harness sees it).
 struct Counting(usize);
 
 impl ComplianceBackend for Counting {
@@ -122,7 +123,7 @@ impl ComplianceBackend for Counting {
         _: usize,
     ) -> Result<bool> {
         self.0 += 1;
-        Ok(false)
+        Ok(true)
     }
 }
 
@@ -145,8 +146,8 @@ fn fig4_alone_writes_its_files_and_times_the_backend() {
     )
     .unwrap();
     // Quick: 30, 60 and 90 contacts, three timed repeats each after the
-    // untimed warm-up builds; the backend declined every build.
-    assert_eq!(backend.0, 3 * (study::compliance::BACKEND_WARMUP + 3));
+    // untimed warm-up builds.
+    assert!(backend.0 >= 3 * (study::compliance::BACKEND_WARMUP + 3));
     assert_eq!(
         fig4.timings.iter().map(|t| t.contacts).collect::<Vec<_>>(),
         [30, 60, 90]
@@ -155,7 +156,7 @@ fn fig4_alone_writes_its_files_and_times_the_backend() {
         let all = [t.dense_rows, t.factorized_cold, t.factorized_warm, t.exact];
         assert!(all.iter().all(|v| v.is_finite() && *v > 0.0), "{t:?}");
         assert!(t.backend.is_some_and(|b| b.is_finite() && b > 0.0), "{t:?}");
-        assert_eq!(t.backend_builds, (0, 3), "{t:?}");
+        assert_eq!(t.backend_builds, (3, 3), "{t:?}");
     }
     let dir = temp_dir("fig4");
     output::write_fig4(&fig4, &dir).unwrap();
@@ -168,11 +169,8 @@ fn fig4_alone_writes_its_files_and_times_the_backend() {
     let csv = std::fs::read_to_string(dir.join("compliance.csv")).unwrap();
     let md = std::fs::read_to_string(dir.join("fig4.md")).unwrap();
     assert_eq!(csv.lines().count(), 1 + 3);
-    assert!(csv.lines().skip(1).all(|l| l.ends_with(",0,3")), "{csv}");
-    assert!(
-        md.contains("left 3 of its 3 timed builds to the CPU"),
-        "{md}"
-    );
+    assert!(csv.lines().skip(1).all(|l| l.ends_with(",3,3")), "{csv}");
+    assert!(!md.contains("timed builds to the CPU"), "{md}");
     assert!(
         md.contains("Backend: counting, timed back to back")
             && md.contains("](fig4_compliance.png)")
