@@ -12,7 +12,8 @@
 //! - every step the contact nodes' elimination-tree paths and the Jacobian
 //!   entries `j = Qᵀ h` (already in the factor's frame) are uploaded;
 //! - `shaders/compliance.wgsl` runs three dispatches: one workgroup per contact
-//!   node for the forward solves `Z_k = L⁻¹ E_k` along the node's path, one
+//!   node for the forward solves `Z_k = L⁻¹ E_k` along the node's path (in
+//!   workgroup memory where every path fits, [`GpuCompliance::shared_forward`]), one
 //!   workgroup per node pair for the Gram blocks `Z_aᵀ D⁻¹ Z_b`, and one
 //!   invocation per entry for `W = h² J G Jᵀ`;
 //! - only `W` (rows of this body × rows of this body) is read back.
@@ -28,13 +29,18 @@
 //! Which bodies use the GPU is [`GpuCompliance::min_rows`] (the plugin sets it
 //! from its `GpuMode`).
 //!
-//! [`GpuCompliance::wait_seconds`] and its siblings count where the time goes.
-//! The stepping thread waits for each build: on an NVIDIA H200 about 2 ms per
-//! build of the 1 183-node lens whatever the contact count, and about 6 ms per
-//! build in the cataract scene, where nearly every build also carries a new
-//! factor. Keeping the forward walk in workgroup memory took only 0.1–0.3 ms
-//! off that, so the floor lies elsewhere (submission, fence wait, mapping);
-//! see [`GpuMode`](crate::plugin::GpuMode) for what it means for the crossover.
+//! [`GpuCompliance::wait_seconds`] and its siblings count where the time goes;
+//! where the device has timestamp queries, [`GpuCompliance::kernel_seconds`]
+//! and [`GpuCompliance::span_seconds`] give the device's own time of each
+//! kernel (one compute pass per kernel, a timestamp at each pass's start and
+//! end, read back behind `W`). On an NVIDIA H200 a build of the 1 183-node
+//! lens waits about 2 ms whatever the contact count, and 1.45–1.8 ms of that
+//! is the forward kernel: a serial walk of up to 273 levels (the longest
+//! path). The walk in workgroup memory (`forward_shared`, for paths of at
+//! most [`SHARED_FORWARD_MAX_PATH`] nodes) took about 9 % off the kernel. A
+//! GPU left idle for seconds lowers its clocks, and the kernels then take
+//! several times longer; see [`GpuMode`](crate::plugin::GpuMode) for what it
+//! means for the crossover.
 
 use std::collections::HashMap;
 use std::sync::Arc;

@@ -17,8 +17,12 @@ use crate::contact::ContactSettings;
 /// scratch each step (`factor_reuse: 0`) the GPU is faster from 30 contacts
 /// (`Auto { min_rows: 90 }`). In the cataract scene the CPU path reuses the
 /// node columns the worker precomputed, and it stayed faster at every contact
-/// count (up to 413): keep `Off` there. The README's Benchmarks section has
-/// the numbers and the commands.
+/// count (up to 413): keep `Off` there. Most of a GPU build is the forward
+/// kernel's walk along the longest elimination-tree path, and a GPU that a
+/// scene leaves mostly idle lowers its clocks, which makes that walk several
+/// times slower (about 4.2–5.4 ms a build in the scene against 1.45–1.8 ms
+/// back to back). The README's Benchmarks section has the numbers and the
+/// commands.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Reflect)]
 pub enum GpuMode {
     /// Always on the CPU.
