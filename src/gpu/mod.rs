@@ -132,6 +132,10 @@ pub const SHADER: &str = include_str!("../../shaders/compliance.wgsl");
 /// memory (the shader's `MAXP`); builds with a longer path use `forward`.
 pub const SHARED_FORWARD_MAX_PATH: usize = 320;
 
+// `forward_shared`'s workgroup memory (three `u32` and nine `f32` per path
+// node, `s_len` and `s_z` beside them) within WebGPU's minimum limit.
+const _: () = assert!(SHARED_FORWARD_MAX_PATH * 4 * (3 + 9) + 4 + 36 <= 16_384);
+
 struct Pipelines {
     forward: wgpu::ComputePipeline,
     forward_shared: wgpu::ComputePipeline,
@@ -861,8 +865,5 @@ mod tests {
         ] {
             assert!(SHADER.contains(&decl), "shader lacks `{decl}`");
         }
-        // Within WebGPU's minimum workgroup storage (16 384 bytes), with
-        // `s_len` and `s_z` beside the four arrays.
-        assert!(SHARED_FORWARD_MAX_PATH * 4 * (3 + 9) + 4 + 36 <= 16_384);
     }
 }
