@@ -195,19 +195,5 @@ fn print_fig4(fig4: &full::Fig4) {
         Ok(name) => println!("Fig. 4 (ms, median), GPU: {name}"),
         Err(why) => println!("Fig. 4 (ms, median), GPU not measured: {why}"),
     }
-    println!(
-        "{:>8} {:>10} {:>12} {:>12} {:>10} {:>10}",
-        "contacts", "DenseRows", "Fact. new", "Fact. cached", "Exact", "GPU"
-    );
-    for t in &fig4.timings {
-        println!(
-            "{:>8} {:>10.3} {:>12.3} {:>12.3} {:>10.3} {:>10}",
-            t.contacts,
-            t.dense_rows,
-            t.factorized_cold,
-            t.factorized_warm,
-            t.exact,
-            t.backend.map_or("–".into(), |b| format!("{b:.3}"))
-        );
-    }
+    print!("{}", study::output::fig4_table(fig4));
 }

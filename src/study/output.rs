@@ -200,13 +200,11 @@ pub fn write_fig4(fig4: &Fig4, dir: &Path) -> Result<()> {
     put(dir, "fig4.md", &out)
 }
 
-/// Fig. 4's section of a report (`figure`: whether `fig4_compliance.png` was drawn).
-fn fig4_markdown(out: &mut String, fig4: &Fig4, figure: bool) {
-    let _ = writeln!(
-        out,
-        "## Fig. 4: compliance build time against contacts\n\nThe 1183-node lens, friction on \
-         (3 rows per contact), median of repeats, milliseconds.\n\n\
-         | contacts | DenseRows | Factorized (new factor) | Factorized (cached) | Exact | backend |\n|---|---|---|---|---|---|"
+/// Fig. 4's table in Markdown (milliseconds; `–` where no backend was timed).
+pub fn fig4_table(fig4: &Fig4) -> String {
+    let mut out = String::from(
+        "| contacts | DenseRows | Factorized (new factor) | Factorized (cached) | Exact | backend |\n\
+         |---|---|---|---|---|---|\n",
     );
     for t in &fig4.timings {
         let _ = writeln!(
@@ -220,6 +218,17 @@ fn fig4_markdown(out: &mut String, fig4: &Fig4, figure: bool) {
             t.backend.map_or("–".into(), |b| format!("{b:.3}"))
         );
     }
+    out
+}
+
+/// Fig. 4's section of a report (`figure`: whether `fig4_compliance.png` was drawn).
+fn fig4_markdown(out: &mut String, fig4: &Fig4, figure: bool) {
+    let _ = write!(
+        out,
+        "## Fig. 4: compliance build time against contacts\n\nThe 1183-node lens, friction on \
+         (3 rows per contact), median of repeats, milliseconds.\n\n{}",
+        fig4_table(fig4)
+    );
     match &fig4.backend {
         Ok(name) => {
             let _ = writeln!(
