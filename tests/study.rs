@@ -147,7 +147,7 @@ fn fig4_alone_writes_its_files_and_times_the_backend() {
     .unwrap();
     // Quick: 30, 60 and 90 contacts, three timed repeats each after the
     // untimed warm-up builds.
-    assert!(backend.0 >= 3 * (study::compliance::BACKEND_WARMUP + 3));
+    assert!(backend.0 >= 3 * (1 + 3), "{} builds", backend.0);
     assert_eq!(
         fig4.timings.iter().map(|t| t.contacts).collect::<Vec<_>>(),
         [30, 60, 90]

@@ -8,7 +8,7 @@
 //!   and nodes as the previous build, as in a step where the factor did not change);
 //! - `Exact`: a fresh factorization of the current matrix, then `Factorized`'s build;
 //! - a [`ComplianceBackend`] (the GPU) when one is given, its builds back to
-//!   back after untimed ones ([`BACKEND_WARMUP`], [`BACKEND_WARMUP_SECONDS`]),
+//!   back after untimed ones for [`BACKEND_WARMUP_SECONDS`],
 //!   so that the device runs at the clocks a steady load gives it.
 
 use std::time::Instant;
@@ -24,14 +24,10 @@ use crate::math::{Vec3, v3};
 use crate::mesh::generate::{self, LENS_RADII};
 use crate::solver::PreconditionerKind;
 
-/// Untimed backend builds before the timed ones at each contact count: at
-/// least this many, and for at least [`BACKEND_WARMUP_SECONDS`].
-pub const BACKEND_WARMUP: usize = 5;
-
-/// Seconds of untimed back-to-back backend builds before the timed ones. A
-/// GPU left idle for a few seconds (the CPU modes' builds at high contact
-/// counts) lowers its clocks, and five builds (about 50 ms) did not bring
-/// them back on an NVIDIA H200.
+/// Seconds of untimed back-to-back backend builds (at least one) before the
+/// timed ones at each contact count. A GPU left idle for a few seconds (the
+/// CPU modes' builds at high contact counts) lowers its clocks, and five
+/// builds (about 50 ms) did not bring them back on an NVIDIA H200.
 pub const BACKEND_WARMUP_SECONDS: f64 = 1.0;
 
 /// Contact counts of the paper's Fig. 4 range.
@@ -186,11 +182,11 @@ pub fn timings(
         let mut took = 0;
         if let Some(b) = backend.as_deref_mut() {
             let warm = Instant::now();
-            let mut untimed = 0;
-            while untimed < BACKEND_WARMUP || warm.elapsed().as_secs_f64() < BACKEND_WARMUP_SECONDS
-            {
+            loop {
                 time(&mut back_s, body, true, Some(&mut *b))?;
-                untimed += 1;
+                if warm.elapsed().as_secs_f64() >= BACKEND_WARMUP_SECONDS {
+                    break;
+                }
             }
             for _ in 0..repeats.max(1) {
                 let mut counted = Counted { inner: b, took: 0 };
