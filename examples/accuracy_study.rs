@@ -114,9 +114,9 @@ fn main() -> ExitCode {
         Progress::Step => bar.inc(1),
     };
     if args.fig4_only {
-        let fig4 = match full::fig4(&config, backend, &mut progress)
-            .and_then(|f| study::output::write_fig4(&f, &args.out).map(|()| f))
-        {
+        let fig4 = match full::fig4(&config, backend, &mut progress).and_then(|f| {
+            study::output::write_fig4(&f, &full::Machine::detect(), &args.out).map(|()| f)
+        }) {
             Ok(f) => f,
             Err(e) => {
                 bar.abandon();

@@ -4,12 +4,14 @@
 //! ```text
 //! cargo run --release --features gpu --example gpu_bench
 //! cargo run --release --features gpu --example gpu_bench -- --global-walk
+//! cargo run --release --features gpu --example gpu_bench -- --idle-ms 300
 //! ```
 //! `--global-walk` runs the forward solves in global memory (the kernel for
 //! paths too long for workgroup memory) instead of workgroup memory;
 //! `--upload-each` writes the factor to the device again before every GPU
 //! build, as when each step brings a new factor; `--idle-ms N` lets the
-//! device idle N ms before each GPU build, as between a scene's steps.
+//! device idle N ms before each GPU build, as between a scene's steps
+//! (`--help` lists them).
 //! On Mesa lavapipe (a CPU rasterizer) the numbers only show that the path
 //! works; GPU timings need a real GPU.
 
@@ -22,7 +24,23 @@ use bevy_soft_tissue::gpu::GpuCompliance;
 use bevy_soft_tissue::prelude::*;
 mod common;
 use bevy_soft_tissue::study::compliance::lens_with_factor;
+use clap::Parser;
 use common::bench::pole_contacts;
+
+#[derive(Parser, Debug)]
+#[command(about = "GPU against CPU compliance build time on the paper-size lens")]
+struct Args {
+    /// Walk the forward solves in global memory (the kernel for paths too
+    /// long for workgroup memory).
+    #[arg(long)]
+    global_walk: bool,
+    /// Write the factor to the device again before every GPU build.
+    #[arg(long)]
+    upload_each: bool,
+    /// Let the device idle this many milliseconds before each GPU build.
+    #[arg(long, default_value_t = 0)]
+    idle_ms: u64,
+}
 
 fn median(mut v: Vec<f64>) -> f64 {
     v.sort_by(f64::total_cmp);
@@ -30,6 +48,7 @@ fn median(mut v: Vec<f64>) -> f64 {
 }
 
 fn main() -> bevy_soft_tissue::error::Result<()> {
+    let args = Args::parse();
     let mut app = App::new();
     if let Err(e) = bevy_soft_tissue::gpu::add_headless_render(&mut app, None) {
         eprintln!("gpu_bench: not measured: {e}");
@@ -48,14 +67,8 @@ fn main() -> bevy_soft_tissue::error::Result<()> {
         println!("adapter: {} ({:?})", info.name, info.device_type);
     }
     let mut gpu = GpuCompliance::new(device.clone(), queue.clone(), 0);
-    gpu.shared_forward = !std::env::args().any(|a| a == "--global-walk");
-    let upload_each = std::env::args().any(|a| a == "--upload-each");
-    // `--idle-ms N`: the device idles N ms before each GPU build.
-    let idle_ms: u64 = std::env::args()
-        .skip_while(|a| a != "--idle-ms")
-        .nth(1)
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(0);
+    gpu.shared_forward = !args.global_walk;
+    let (upload_each, idle_ms) = (args.upload_each, args.idle_ms);
     if idle_ms > 0 {
         println!("the device idles {idle_ms} ms before each GPU build");
     }
@@ -76,7 +89,7 @@ fn main() -> bevy_soft_tissue::error::Result<()> {
     if gpu.timestamps() {
         println!(
             "per GPU build, mean (ms): `wait` from submit to W mapped on the host; `busy` from the \
-             first kernel's start to the last one's end on the device (timestamps); the kernels; `path` the longest path (nodes)"
+             first kernel's start to the last one's end on the device (timestamps); the kernels; `path` the longest path (nodes), mean over the builds"
         );
     } else {
         println!("(this device has no timestamp queries: no busy and kernel columns)");
@@ -88,11 +101,11 @@ fn main() -> bevy_soft_tissue::error::Result<()> {
         "GPU",
         "GPU/CPU",
         "wait",
+        "path",
         "busy",
         "forward",
         "gram",
-        "contract",
-        "path"
+        "contract"
     );
     for n in [30, 60, 90, 130, 260] {
         let cs = pole_contacts(&body, n, v3(0.0, 0.0, -1.0), 0.3);
@@ -124,7 +137,12 @@ fn main() -> bevy_soft_tissue::error::Result<()> {
         let (c, g) = (median(cpu_t), median(gpu_t));
         // Mean time the stepping thread waited for the device per GPU build.
         let wait = (gpu.wait_seconds - wait0) * 1e3 / (gpu.built - builds0).max(1) as f64;
-        print!("{n:>8} {c:>14.3} {g:>10.3} {:>10.2} {wait:>10.3}", g / c);
+        let builds = (gpu.built - builds0).max(1);
+        print!(
+            "{n:>8} {c:>14.3} {g:>10.3} {:>10.2} {wait:>10.3} {:>10}",
+            g / c,
+            (gpu.path_sum - paths0) / builds
+        );
         // The device's own timing of the same builds, where it has timestamps.
         let timed = (gpu.timed - timed0) as f64;
         if timed > 0.0 {
@@ -134,8 +152,7 @@ fn main() -> bevy_soft_tissue::error::Result<()> {
                 print!(" {:>10.3}", per(*now, then));
             }
         }
-        let builds = (gpu.built - builds0).max(1);
-        println!(" {:>10}", (gpu.path_sum - paths0) / builds);
+        println!();
     }
     Ok(())
 }

@@ -159,7 +159,7 @@ fn fig4_alone_writes_its_files_and_times_the_backend() {
         assert_eq!(t.backend_builds, (3, 3), "{t:?}");
     }
     let dir = temp_dir("fig4");
-    output::write_fig4(&fig4, &dir).unwrap();
+    output::write_fig4(&fig4, &full::Machine::detect(), &dir).unwrap();
     for f in output::FIG4_FILES {
         let len = std::fs::metadata(dir.join(f)).map(|m| m.len()).unwrap_or(0);
         assert!(len > 0, "{f} was not written");

@@ -93,8 +93,6 @@ pub struct Fig4 {
     /// Name of the compliance backend (the GPU) timed beside the CPU modes,
     /// or why none was.
     pub backend: std::result::Result<String, String>,
-    /// The machine it ran on.
-    pub machine: Machine,
 }
 
 /// Everything the study measured.
@@ -153,7 +151,6 @@ pub fn fig4(
     Ok(Fig4 {
         timings,
         backend: name,
-        machine: Machine::detect(),
     })
 }
 

@@ -13,7 +13,7 @@
 use std::fmt::Write as _;
 use std::path::Path;
 
-use super::full::{Fig4, StudyReport};
+use super::full::{Fig4, Machine, StudyReport};
 use super::{CaseResult, PARETO_MAX_PENETRATION, PHASES, VariantSummary, knee, pareto_front};
 use crate::error::{Result, SoftTissueError};
 
@@ -179,10 +179,10 @@ pub fn compliance_csv(fig4: &Fig4) -> String {
 /// Every file [`write_fig4`] creates (the figure only with the `study` feature).
 pub const FIG4_FILES: [&str; 2] = ["compliance.csv", "fig4.md"];
 
-/// Fig. 4 alone (`accuracy_study --fig4-only`): `compliance.csv`,
-/// `fig4_compliance.png` (with the `study` feature) and `fig4.md` into `dir`
-/// (created if missing).
-pub fn write_fig4(fig4: &Fig4, dir: &Path) -> Result<()> {
+/// Fig. 4 alone (`accuracy_study --fig4-only`), measured on `machine`:
+/// `compliance.csv`, `fig4_compliance.png` (with the `study` feature) and
+/// `fig4.md` into `dir` (created if missing).
+pub fn write_fig4(fig4: &Fig4, machine: &Machine, dir: &Path) -> Result<()> {
     std::fs::create_dir_all(dir).map_err(|e| io(dir, e))?;
     put(dir, "compliance.csv", &compliance_csv(fig4))?;
     #[cfg(feature = "study")]
@@ -194,7 +194,7 @@ pub fn write_fig4(fig4: &Fig4, dir: &Path) -> Result<()> {
     let figure = false;
     let mut out = format!(
         "# Fig. 4 alone\n\nOn {} ({} cores).\n\n",
-        fig4.machine.cpu, fig4.machine.cores
+        machine.cpu, machine.cores
     );
     fig4_markdown(&mut out, fig4, figure);
     put(dir, "fig4.md", &out)
