@@ -219,8 +219,9 @@ fn headless(args: &Args, params: &CataractParams, config: SoftTissueConfig) -> E
                 s.columns_jam.0, s.columns_jam.1
             );
             println!(
-                "factors refreshed by the contact phase's consistency checks: {}",
-                s.consistency_refactors
+                "factors refreshed by the contact phase's consistency checks: {}; \
+                 rescues that took the worker's factor of the same step: {} of {}",
+                s.consistency_refactors, s.rescues.1, s.rescues.0
             );
             if let Some(g) = s.gpu {
                 let per = |t: f64, n: u64| t * 1e3 / n.max(1) as f64;

@@ -73,6 +73,10 @@ pub struct HeadlessSummary {
     pub lcp_capped: u64,
     /// Lagging factors refreshed by the contact phase (consistency checks).
     pub consistency_refactors: u64,
+    /// Rescues of lagging factors (consistency checks and CG), all bodies,
+    /// and of those the ones that took the worker's factor of the same step
+    /// ([`bevy_soft_tissue::solver::PreconditionerStats::rescues_from_worker`]).
+    pub rescues: (u64, u64),
     /// Contact problems written (see [`Recording`]).
     pub recorded: usize,
     /// The GPU compliance's counters at the end, when it ran.
@@ -368,6 +372,10 @@ pub fn run_headless_recording(
             .world()
             .resource::<SoftTissueDiagnostics>()
             .consistency_refactors,
+        rescues: body_q.iter(app.world()).fold((0, 0), |(r, w), b| {
+            let p = b.0.report().preconditioner;
+            (r + p.rescues, w + p.rescues_from_worker)
+        }),
         recorded,
         gpu: gpu_counters(&app),
     };

@@ -58,7 +58,9 @@ pub struct ContactSettings {
     /// twists the soft rigid-body modes of a free body into stiff deformation,
     /// which [`Self::rigid_modes`] now answers exactly), and the correction
     /// shoots the tissue off. When the ratio leaves
-    /// `[1 / (1 + tol), 1 + tol]` the body's matrix is factorized now and the
+    /// `[1 / (1 + tol), 1 + tol]` the body's matrix is factorized now (or
+    /// the background worker's factor of the same step's matrix is waited for,
+    /// see [`crate::solver`], "Rescue") and the
     /// pass's `W`, LCP and correction are redone with it (counted in
     /// [`super::ContactReport::consistency_refactors`]). Default 0.1;
     /// `f64::INFINITY` never refreshes. Checked in the first pass.

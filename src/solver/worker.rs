@@ -252,19 +252,22 @@ impl AsyncFactorizer {
         if !self.in_flight {
             return None;
         }
-        let got = if block {
-            self.rx.recv().ok()
+        // A closed channel (the thread has exited) ends the job as surely as
+        // a result does: otherwise the factorizer would wait on it forever
+        // and never hand over, nor let the fallback refresh.
+        let (got, over) = if block {
+            match self.rx.recv() {
+                Ok(d) => (Some(d), true),
+                Err(_) => (None, true),
+            }
         } else {
             match self.rx.try_recv() {
-                Ok(d) => Some(d),
-                Err(TryRecvError::Empty) => None,
-                Err(TryRecvError::Disconnected) => {
-                    self.in_flight = false;
-                    None
-                }
+                Ok(d) => (Some(d), true),
+                Err(TryRecvError::Empty) => (None, false),
+                Err(TryRecvError::Disconnected) => (None, true),
             }
         };
-        if got.is_some() {
+        if over {
             self.in_flight = false;
         }
         got

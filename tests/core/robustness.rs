@@ -380,6 +380,86 @@ fn async_lagged_keeps_its_lag_with_more_bodies_than_cores() {
     assert!(x1 == x2, "two runs of {n} lagged bodies differ");
 }
 
+/// `‖A x − r‖ / ‖r‖` for `x` the solve of `r` with the body's factor: about
+/// the round-off when the factor is of the body's current matrix `A`.
+fn factor_residual(b: &DeformableBody) -> f64 {
+    let a = b.system_matrix();
+    let f = &b.preconditioner().factor_state().unwrap().factor;
+    let n = a.n();
+    let r: Vec<Vec3> = (0..n)
+        .map(|i| v3(1.0, -0.5 + (i % 7) as f64 * 0.1, 0.25))
+        .collect();
+    let (mut x, mut tmp, mut ax) = (vec![Vec3::zeros(); n], vec![Vec3::zeros(); n], vec![Vec3::zeros(); n]);
+    f.solve(&r, &mut x, &mut tmp);
+    a.mul_vec(&x, &mut ax);
+    let num: f64 = ax.iter().zip(&r).map(|(p, q)| (p - q).norm_squared()).sum();
+    let den: f64 = r.iter().map(|q| q.norm_squared()).sum();
+    (num / den).sqrt()
+}
+
+/// A rescue (`refactor_preconditioner_now`, which the contact phase's
+/// consistency check calls after the free motion) waits for the background
+/// worker when the worker is factorizing the same step's matrix, and takes its
+/// factor instead of factorizing again; when the worker's job is of an older
+/// step, or the worker has exited, it factorizes on the stepping thread.
+/// Either way the factor is then of the current matrix.
+#[test]
+fn a_rescue_takes_the_workers_factor_only_of_the_same_step() {
+    let h = 0.01;
+    // `(lag, stop the worker)`: the rescue comes at step 3 with the worker's
+    // job of step 3 (lag 1), of step 2 (lag 2), or with no worker left.
+    for (lag, stop) in [(1u32, false), (2, false), (1, true)] {
+        let mut b = clamped_beam();
+        let mut s = *b.settings();
+        s.preconditioner = PreconditionerKind::AsyncLagged { lag };
+        b.set_settings(s).unwrap();
+        for _ in 0..3 {
+            b.step(h).unwrap();
+        }
+        let w = b.preconditioner().worker().unwrap();
+        // The job is still running when the rescue asks for it.
+        w.inject_delay(std::time::Duration::from_millis(30));
+        if stop {
+            w.inject_stop();
+        }
+        b.assemble(h).unwrap();
+        b.update_preconditioner().unwrap();
+        b.solve_free_motion().unwrap();
+        let before = factor_residual(&b);
+        let current = b.step_index() - 1;
+        assert!(b.preconditioner().factor_state().unwrap().step < current);
+        assert!(b.refactor_preconditioner_now().unwrap());
+        let stats = b.report().preconditioner;
+        let after = factor_residual(&b);
+        let case = format!("lag {lag}, worker stopped {stop}: {stats:?}");
+        assert_eq!(stats.rescues, 1, "{case}");
+        let from_worker = lag == 1 && !stop;
+        assert_eq!(stats.rescues_from_worker, u64::from(from_worker), "{case}");
+        assert_eq!(
+            b.preconditioner().factor_state().unwrap().step,
+            current,
+            "{case}"
+        );
+        assert_eq!(stats.factor_age, 0, "{case}");
+        // The old factor's residual shows how far the matrix has moved: the
+        // new one must be of the current matrix, not of the old ones.
+        assert!(
+            after < 1e-9 && after * 1e3 < before,
+            "{case}: residual {after:e} after the rescue, {before:e} before"
+        );
+        // The body steps on, and the worker's next factors come in (or, once
+        // it has exited, the stepping thread's fallback refreshes).
+        for _ in 0..6 {
+            b.step(h).unwrap();
+        }
+        let after_steps = b.report().preconditioner;
+        assert!(
+            after_steps.refreshes + after_steps.fallback_refreshes > stats.refreshes + stats.fallback_refreshes,
+            "{case}: no refresh after the rescue: {after_steps:?}"
+        );
+    }
+}
+
 /// Mutations of valid files: truncation, byte flips, numbers replaced by
 /// huge or odd values, lines dropped or repeated.
 #[derive(Debug, Clone)]
