@@ -1,7 +1,7 @@
 //! One implicit step of the paper-size lens (1183 nodes, 5184 tets, nucleus 5× stiffer)
 //! for each preconditioner, while the lens is squeezed and twisted.
 //!
-//! Run: `cargo bench --bench step` (`-- lens_assemble` for the assembly alone, `-- lens_backward` for one backward sweep with the factor, `-- lens_solve_many6` for six right-hand sides at once (`-- lens_forward_many6` their forward half), `-- lens_w` for `W` of a jam-sized contact set).
+//! Run: `cargo bench --bench step` (`-- lens_assemble` for the assembly alone, `-- lens_factorize` for one numeric factorization and `-- lens_round_to_single` for its single-precision copy, `-- lens_backward` for one backward sweep with the factor, `-- lens_solve_many6` for six right-hand sides at once (`-- lens_forward_many6` their forward half), `-- lens_w` for `W` of a jam-sized contact set).
 
 use bevy_soft_tissue::core_prelude::*;
 use bevy_soft_tissue::mesh::generate::LENS_RADII;
@@ -91,6 +91,13 @@ fn bench_backward(c: &mut Criterion) {
         .factor
         .clone();
     assert!(f.round_to_single());
+    let sym = f.symbolic.clone();
+    let a = body.system_matrix();
+    let (mut out, mut work) = (sym.alloc_factor(), Vec::new());
+    c.bench_function("lens_factorize", |b| {
+        b.iter(|| sym.factorize(a, &mut out, &mut work).expect("factorize"))
+    });
+    c.bench_function("lens_round_to_single", |b| b.iter(|| f.round_to_single()));
     let n = f.symbolic.n;
     let y0: Vec<Vec3> = (0..n).map(|i| v3(1.0, -0.5, 0.25 * i as f64)).collect();
     let mut y = y0.clone();

@@ -76,9 +76,12 @@ pub struct LdltFactor {
     /// `l` rounded to `f32` for [`Self::solve_single`]: nine entries per
     /// block, column-major, then three of padding (the kernels' four-lane
     /// loads read one entry past a block). Made by [`Self::round_to_single`];
-    /// empty when there is no copy (each factorization empties it, keeping
-    /// its capacity).
+    /// allocated by its first call and kept, its entries valid only while
+    /// `single` is set.
     l32: Vec<f32>,
+    /// Whether `l32` holds the copy of the current `l` (cleared by each
+    /// factorization into this factor).
+    single: bool,
 }
 
 impl LdltSymbolic {
@@ -188,6 +191,7 @@ impl LdltSymbolic {
             ldiag: vec![[0.0; 3]; self.n],
             d: vec![Vec3::zeros(); self.n],
             l32: Vec::new(),
+            single: false,
         }
     }
 
@@ -200,7 +204,7 @@ impl LdltSymbolic {
         work: &mut Vec<Mat3>,
     ) -> Result<()> {
         let n = self.n;
-        out.l32.clear();
+        out.single = false;
         work.clear();
         work.resize(n, Mat3::zeros());
         let y = work;
@@ -336,7 +340,7 @@ impl LdltFactor {
     fn check_single<const SINGLE: bool>(&self) {
         if SINGLE {
             assert!(
-                self.l32.len() >= 9 * self.l.len() + 3,
+                self.single && self.l32.len() >= 9 * self.l.len() + 3,
                 "no single-precision copy of L"
             );
         }
@@ -450,27 +454,34 @@ impl LdltFactor {
     /// [`Self::solve_single`] solves in double precision). Allocates on the
     /// first call only.
     pub fn round_to_single(&mut self) -> bool {
-        self.l32.clear();
-        self.l32.reserve_exact(9 * self.l.len() + 3);
-        for &v in self.l.iter().flat_map(|b| b.as_slice()) {
-            if v.abs() > f64::from(f32::MAX) || !v.is_finite() {
-                self.l32.clear();
-                return false;
-            }
-            self.l32.push(if v.abs() < f64::from(f32::MIN_POSITIVE) {
-                0.0
-            } else {
-                v as f32
-            });
+        let len = 9 * self.l.len() + 3;
+        if self.l32.len() != len {
+            self.l32.clear();
+            self.l32.resize(len, 0.0);
         }
-        self.l32.extend_from_slice(&[0.0; 3]);
-        true
+        // One branch-free pass (the range check is folded into `ok`), which
+        // the compiler vectorizes; the padding stays zero.
+        let mut ok = true;
+        for (b, out) in self.l.iter().zip(self.l32.chunks_exact_mut(9)) {
+            for (o, &v) in out.iter_mut().zip(b.as_slice()) {
+                let a = v.abs();
+                // False for NaN and ±∞ too.
+                ok &= a <= f64::from(f32::MAX);
+                *o = if a < f64::from(f32::MIN_POSITIVE) {
+                    0.0
+                } else {
+                    v as f32
+                };
+            }
+        }
+        self.single = ok;
+        ok
     }
 
     /// Whether a single-precision copy of `L` is in place (see
     /// [`Self::round_to_single`]).
     pub fn has_single(&self) -> bool {
-        !self.l32.is_empty()
+        self.single
     }
 
     /// The single-precision copy of `L` (nine entries per block, column-major,
@@ -485,7 +496,7 @@ impl LdltFactor {
         self.l.copy_from_slice(&other.l);
         self.ldiag.copy_from_slice(&other.ldiag);
         self.d.copy_from_slice(&other.d);
-        self.l32.clear();
+        self.single = false;
     }
 
     /// Solves `(L̃ D L̃ᵀ) x = b` like [`Self::solve`], with `L̃` the
@@ -925,6 +936,20 @@ mod tests {
         f.backward_single(&mut b32);
         f.backward(&mut b64);
         assert_eq!(b32, b64);
+        // Not a number, or infinite: no copy either.
+        for bad in [f64::NAN, f64::INFINITY, f64::NEG_INFINITY, -1e39] {
+            f.l[3][(1, 2)] = 0.25;
+            assert!(f.round_to_single());
+            f.l[3][(1, 2)] = bad;
+            assert!(!f.round_to_single() && !f.has_single(), "{bad}");
+        }
+        // Below f32's smallest normal number: zero. Largest: kept.
+        f.l[3][(1, 2)] = 1e-39;
+        f.l[4][(0, 0)] = -f64::from(f32::MAX);
+        assert!(f.round_to_single());
+        let l32 = f.l_single().unwrap();
+        assert_eq!(l32[9 * 3 + 3 * 2 + 1], 0.0);
+        assert_eq!(l32[9 * 4], -f32::MAX);
         // Copying values drops the copy too.
         f.l[3][(1, 2)] = 0.25;
         assert!(f.round_to_single());
