@@ -389,7 +389,11 @@ fn factor_residual(b: &DeformableBody) -> f64 {
     let r: Vec<Vec3> = (0..n)
         .map(|i| v3(1.0, -0.5 + (i % 7) as f64 * 0.1, 0.25))
         .collect();
-    let (mut x, mut tmp, mut ax) = (vec![Vec3::zeros(); n], vec![Vec3::zeros(); n], vec![Vec3::zeros(); n]);
+    let (mut x, mut tmp, mut ax) = (
+        vec![Vec3::zeros(); n],
+        vec![Vec3::zeros(); n],
+        vec![Vec3::zeros(); n],
+    );
     f.solve(&r, &mut x, &mut tmp);
     a.mul_vec(&x, &mut ax);
     let num: f64 = ax.iter().zip(&r).map(|(p, q)| (p - q).norm_squared()).sum();
@@ -454,7 +458,8 @@ fn a_rescue_takes_the_workers_factor_only_of_the_same_step() {
         }
         let after_steps = b.report().preconditioner;
         assert!(
-            after_steps.refreshes + after_steps.fallback_refreshes > stats.refreshes + stats.fallback_refreshes,
+            after_steps.refreshes + after_steps.fallback_refreshes
+                > stats.refreshes + stats.fallback_refreshes,
             "{case}: no refresh after the rescue: {after_steps:?}"
         );
     }
