@@ -1,16 +1,18 @@
 //! One implicit step of the paper-size lens (1183 nodes, 5184 tets, nucleus 5× stiffer)
 //! for each preconditioner, while the lens is squeezed and twisted.
 //!
-//! Run: `cargo bench --bench step` (`-- lens_assemble` for the assembly alone, `-- factorize` for one numeric factorization at two resolutions, against faer's, `-- lens_round_to_single` for its single-precision copy, `-- lens_backward` for one backward sweep with the factor, `-- lens_solve_many6` for six right-hand sides at once (`-- lens_forward_many6` their forward half), `-- lens_w` for `W` of a jam-sized contact set).
+//! Run: `cargo bench --bench step` (`-- lens_assemble` for the assembly alone, `-- factorize` for one numeric factorization at three resolutions with each kernel, `-- lens_round_to_single` for its single-precision copy, `-- lens_backward` for one backward sweep with the factor, `-- lens_solve_many6` for six right-hand sides at once (`-- lens_forward_many6` their forward half), `-- lens_w` for `W` of a jam-sized contact set).
 
 use bevy_soft_tissue::core_prelude::*;
 use bevy_soft_tissue::mesh::generate::LENS_RADII;
 
 #[path = "../examples/common/mod.rs"]
 mod common;
-use bevy_soft_tissue::solver::ldlt::LdltSymbolic;
+use bevy_soft_tissue::solver::ldlt::{FactorKernel, LdltSymbolic};
+use bevy_soft_tissue::solver::ordering::Ordering;
 use criterion::{Criterion, criterion_group, criterion_main};
 use nalgebra::Rotation3;
+use std::sync::Arc;
 
 fn lens_body(kind: PreconditionerKind) -> (DeformableBody, Vec<usize>) {
     let mesh = generate::ellipsoid(LENS_RADII, 12).expect("lens mesh");
@@ -188,12 +190,12 @@ fn bench_compliance(c: &mut Criterion) {
     });
 }
 
-/// One numeric factorization of the lens's matrix, at the benchmark's
-/// resolution (`lens_factorize`, 1 183 nodes) and a finer one
-/// (`lens24_factorize`), against faer's supernodal `LDLᵀ` of the same matrix
-/// in the same ordering (`…_faer`).
+/// One numeric factorization of the lens's matrix at three resolutions
+/// (`lens`: the benchmark's, 1 183 nodes; `lens18`, `lens24`), with each
+/// kernel (`…_blocked`, `…_supernodal`; see `solver::ldlt::FactorKernel`), in
+/// the same ordering.
 fn bench_factorize(c: &mut Criterion) {
-    for (prefix, divisions) in [("lens", 12), ("lens24", 24)] {
+    for (prefix, divisions) in [("lens", 12), ("lens18", 18), ("lens24", 24)] {
         let mesh = generate::ellipsoid(LENS_RADII, divisions).expect("lens mesh");
         let settings = BodySettings {
             preconditioner: PreconditionerKind::Periodic { every: 1 },
@@ -203,92 +205,30 @@ fn bench_factorize(c: &mut Criterion) {
             DeformableBody::new(mesh, common::bench::lens_material(), settings).expect("body");
         body.fix_where(|p| p.z < -1.6e-3);
         body.step(0.02).expect("step");
-        let sym = body.preconditioner().symbolic().expect("factor").clone();
         let a = body.system_matrix();
-        let (mut out, mut work) = (sym.alloc_factor(), Vec::new());
-        println!(
-            "{prefix}: {} nodes, {} blocks of L",
-            a.n(),
-            sym.nnz_blocks()
-        );
-        c.bench_function(&format!("{prefix}_factorize"), |b| {
-            b.iter(|| sym.factorize(a, &mut out, &mut work).expect("factorize"))
-        });
-        faer_ldlt(c, &format!("{prefix}_factorize_faer"), a, &sym);
-    }
-}
-
-/// faer's sparse supernodal `LDLᵀ` of the same matrix (scalar, `3n × 3n`,
-/// lower triangle) in the same node ordering.
-fn faer_ldlt(
-    c: &mut Criterion,
-    name: &str,
-    a: &bevy_soft_tissue::fem::assembly::BlockCsr,
-    sym: &LdltSymbolic,
-) {
-    use faer::dyn_stack::{MemBuffer, MemStack};
-    use faer::sparse::linalg::SupernodalThreshold;
-    use faer::sparse::linalg::cholesky::{
-        CholeskySymbolicParams, SymmetricOrdering, factorize_symbolic_cholesky,
-    };
-    use faer::sparse::{SparseColMat, Triplet};
-    use faer::{Par, Side};
-    let p = &a.pattern;
-    let mut triplets = Vec::new();
-    for r in 0..p.n {
-        for slot in p.row_ptr[r]..p.row_ptr[r + 1] {
-            let cnode = p.col_idx[slot];
-            let m = a.values[slot];
-            for i in 0..3 {
-                for j in 0..3 {
-                    let (row, col) = (3 * r + i, 3 * cnode + j);
-                    if row >= col {
-                        triplets.push(Triplet::new(row, col, m[(i, j)]));
-                    }
-                }
+        let mut group = c.benchmark_group(format!("{prefix}_factorize"));
+        group.sample_size(if divisions > 12 { 10 } else { 50 });
+        for (name, kernel) in [
+            ("blocked", FactorKernel::Blocked),
+            ("supernodal", FactorKernel::Supernodal),
+        ] {
+            let sym = Arc::new(
+                LdltSymbolic::with_kernel(&a.pattern, Ordering::Auto, kernel).expect("symbolic"),
+            );
+            assert_eq!(sym.kernel(), kernel);
+            if name == "blocked" {
+                println!(
+                    "{prefix}: {} nodes, {} blocks of L",
+                    a.n(),
+                    sym.nnz_blocks()
+                );
             }
+            let (mut out, mut work) = (sym.alloc_factor(), Vec::new());
+            group.bench_function(name, |b| {
+                b.iter(|| sym.factorize(a, &mut out, &mut work).expect("factorize"))
+            });
         }
-    }
-    let n = 3 * p.n;
-    let lower = SparseColMat::<usize, f64>::try_new_from_triplets(n, n, &triplets).expect("csc");
-    let fwd: Vec<usize> = (0..n).map(|k| 3 * sym.perm[k / 3] + k % 3).collect();
-    let mut inv = vec![0; n];
-    for (k, &v) in fwd.iter().enumerate() {
-        inv[v] = k;
-    }
-    let perm = faer::perm::PermRef::new_checked(&fwd, &inv, n);
-    {
-        let threshold = SupernodalThreshold::FORCE_SUPERNODAL;
-        let symbolic = factorize_symbolic_cholesky(
-            lower.symbolic(),
-            Side::Lower,
-            SymmetricOrdering::Custom(perm),
-            CholeskySymbolicParams {
-                supernodal_flop_ratio_threshold: threshold,
-                ..Default::default()
-            },
-        )
-        .expect("symbolic");
-        let mut values = vec![0.0f64; symbolic.len_val()];
-        let mut buf = MemBuffer::new(
-            symbolic.factorize_numeric_ldlt_scratch::<f64>(Par::Seq, Default::default()),
-        );
-        c.bench_function(name, |b| {
-            b.iter(|| {
-                symbolic
-                    .factorize_numeric_ldlt(
-                        &mut values,
-                        lower.as_ref(),
-                        Side::Lower,
-                        Default::default(),
-                        Par::Seq,
-                        MemStack::new(&mut buf),
-                        Default::default(),
-                    )
-                    .map(|_| ())
-                    .expect("ldlt")
-            })
-        });
+        group.finish();
     }
 }
 

@@ -105,6 +105,7 @@ pub mod cg;
 pub mod columns;
 pub mod ldlt;
 pub mod ordering;
+pub mod supernodal;
 mod worker;
 
 use std::sync::Arc;
