@@ -633,6 +633,31 @@ fn generators_reach_paper_sizes() {
     );
 }
 
+/// The supernodal kernel (`FactorKernel::Supernodal`, large bodies)
+/// refactorizes into its factor without allocating: its buffers and scratch
+/// are sized with the factor.
+#[test]
+fn a_supernodal_factorization_allocates_nothing() {
+    use bevy_soft_tissue::solver::ldlt::FactorKernel;
+    let mesh = generate::ellipsoid(LENS_RADII, 6).unwrap();
+    let mut body = DeformableBody::new(mesh, lens_material(), BodySettings::default()).unwrap();
+    body.fix_where(|p| p.z < -1.6e-3);
+    body.step(0.01).unwrap();
+    let a = body.system_matrix().clone();
+    let sym = Arc::new(
+        LdltSymbolic::with_kernel(&a.pattern, FillOrdering::Auto, FactorKernel::Supernodal)
+            .unwrap(),
+    );
+    assert_eq!(sym.kernel(), FactorKernel::Supernodal);
+    let (mut f, mut work) = (sym.alloc_factor(), Vec::new());
+    sym.factorize(&a, &mut f, &mut work).unwrap();
+    let before = allocations();
+    for _ in 0..3 {
+        sym.factorize(&a, &mut f, &mut work).unwrap();
+    }
+    assert_eq!(allocations() - before, 0);
+}
+
 /// The core promises explicit scratch and no allocation in per-step loops:
 /// once a body has stepped a few times, a step (assembly, preconditioner
 /// update, CG, integration) allocates nothing on the stepping thread, for
