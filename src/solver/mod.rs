@@ -61,8 +61,8 @@
 //! it precomputed for the contact compliance; counted in
 //! [`PreconditionerStats::rescues_from_worker`]. A job of an older matrix is
 //! not: its factor would not be of the current matrix, which is what a rescue
-//! promises. In the cataract scene about half the contact phase's rescues
-//! find the worker on the same step's matrix.
+//! promises. In the cataract scene a third to a half of the contact phase's
+//! rescues find the worker on the same step's matrix.
 //!
 //! ## Asynchronous refresh
 //! [`AsyncFactorizer`] owns a worker thread (crossbeam channels). At the start
