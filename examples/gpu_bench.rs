@@ -136,8 +136,8 @@ fn main() -> bevy_soft_tissue::error::Result<()> {
         }
         let (c, g) = (median(cpu_t), median(gpu_t));
         // Mean time the stepping thread waited for the device per GPU build.
-        let wait = (gpu.wait_seconds - wait0) * 1e3 / (gpu.built - builds0).max(1) as f64;
         let builds = (gpu.built - builds0).max(1);
+        let wait = (gpu.wait_seconds - wait0) * 1e3 / builds as f64;
         print!(
             "{n:>8} {c:>14.3} {g:>10.3} {:>10.2} {wait:>10.3} {:>10}",
             g / c,

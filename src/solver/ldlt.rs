@@ -275,7 +275,7 @@ impl LdltSymbolic {
                 d: &mut out.d,
                 buf: &mut out.supernodal,
             };
-            return plan.factorize(a, parts);
+            return plan.factorize(a, &self.perm, &self.a_diag, parts);
         }
         work.clear();
         work.resize(n, Mat3::zeros());

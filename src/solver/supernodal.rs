@@ -49,12 +49,6 @@ pub(super) struct SupernodalPlan {
     /// Per permuted node: `(1, 0)`, `(2, 0)`, `(2, 1)` of its unit diagonal
     /// block, then its three pivots.
     gather_diag: Vec<usize>,
-    /// The original node of each of faer's positions (for errors).
-    node_of_position: Vec<usize>,
-    /// `perm[new] = old` node, and the slot of each permuted node's diagonal
-    /// block in `A` (the pivots' scale).
-    perm: Vec<usize>,
-    a_diag: Vec<usize>,
     values_len: usize,
     scratch_bytes: usize,
 }
@@ -131,7 +125,6 @@ impl SupernodalPlan {
         col_ptr: &[usize],
         row_idx: &[usize],
     ) -> Option<Self> {
-        let a_diag = perm.iter().map(|&o| pattern.diag[o]).collect();
         let n = pattern.n;
         let dim = 3 * n;
         // The scalar lower triangle of A, column by column.
@@ -172,7 +165,7 @@ impl SupernodalPlan {
         let SymbolicCholeskyRaw::Supernodal(raw) = symbolic.raw() else {
             return None;
         };
-        let (ffwd, finv) = symbolic.perm()?.arrays();
+        let (_, finv) = symbolic.perm()?.arrays();
         let mut super_of = vec![0; dim];
         for s in 0..raw.n_supernodes() {
             super_of[raw.supernode_begin()[s]..raw.supernode_end()[s]].fill(s);
@@ -205,7 +198,6 @@ impl SupernodalPlan {
                 gather_diag.push(locate.at(p[r], p[c])?);
             }
         }
-        let node_of_position = ffwd.iter().map(|&o| o / 3).collect();
         let values_len = symbolic.len_val();
         let scratch_bytes = symbolic
             .factorize_numeric_ldlt_scratch::<f64>(Par::Seq, Default::default())
@@ -217,9 +209,6 @@ impl SupernodalPlan {
             a_src,
             gather_l,
             gather_diag,
-            node_of_position,
-            perm: perm.to_vec(),
-            a_diag,
             values_len,
             scratch_bytes,
         })
@@ -234,10 +223,18 @@ impl SupernodalPlan {
         }
     }
 
-    /// Factorizes `a` into `out` (its blocked layout, through its buffers).
+    /// Factorizes `a` into `out` (its blocked layout, through its buffers),
+    /// with the symbolic analysis's node ordering `perm` (`perm[new] = old`)
+    /// and `a_diag`, the slot of each permuted node's diagonal block in `A`.
     /// A pivot that is not positive, or below `1e-14` of its diagonal entry
     /// of `A`, is [`SoftTissueError::NotPositiveDefinite`].
-    pub(super) fn factorize(&self, a: &BlockCsr, out: FactorParts<'_>) -> Result<()> {
+    pub(super) fn factorize(
+        &self,
+        a: &BlockCsr,
+        perm: &[usize],
+        a_diag: &[usize],
+        out: FactorParts<'_>,
+    ) -> Result<()> {
         let FactorParts { l, ldiag, d, buf } = out;
         if buf.a.len() != self.a_src.len()
             || buf.l.len() != self.values_len
@@ -268,10 +265,13 @@ impl SupernodalPlan {
             }
         };
         if let Some(index) = zero_pivot {
-            return Err(SoftTissueError::NotPositiveDefinite {
-                node: self.node_of_position.get(index).copied().unwrap_or(0),
-                pivot: 0.0,
-            });
+            // faer's position `index` names the original unknown `fwd[index]`.
+            let node = self
+                .symbolic
+                .perm()
+                .and_then(|p| p.arrays().0.get(index).map(|&o| o / 3))
+                .unwrap_or(0);
+            return Err(SoftTissueError::NotPositiveDefinite { node, pivot: 0.0 });
         }
         for (block, idx) in l.iter_mut().zip(self.gather_l.chunks_exact(9)) {
             for (e, &i) in block.as_mut_slice().iter_mut().zip(idx) {
@@ -281,7 +281,7 @@ impl SupernodalPlan {
         for (k, idx) in self.gather_diag.chunks_exact(6).enumerate() {
             ldiag[k] = [buf.l[idx[0]], buf.l[idx[1]], buf.l[idx[2]]];
             let piv = [buf.l[idx[3]], buf.l[idx[4]], buf.l[idx[5]]];
-            let akk = a.values[self.a_diag[k]];
+            let akk = a.values[a_diag[k]];
             let scale = akk[(0, 0)]
                 .abs()
                 .max(akk[(1, 1)].abs())
@@ -289,7 +289,7 @@ impl SupernodalPlan {
             for p in piv {
                 if !p.is_finite() || p <= 1e-14 * scale || scale == 0.0 {
                     return Err(SoftTissueError::NotPositiveDefinite {
-                        node: self.perm[k],
+                        node: perm[k],
                         pivot: p,
                     });
                 }
