@@ -241,7 +241,8 @@ fn headless(args: &Args, params: &CataractParams, config: SoftTissueConfig) -> E
                         "GPU timestamps: {} builds, the device busy {:.3} ms each \
                          (forward {:.3}, Gram {:.3}, contraction {:.3}); longest path \
                          {:.1} nodes per build on average, {} at most; {} builds walked \
-                         in workgroup memory",
+                         in workgroup memory, {} by pieces; the forward walk {:.1} steps \
+                         per build on average",
                         g.timed,
                         per(g.span_seconds, g.timed),
                         per(f, g.timed),
@@ -249,7 +250,9 @@ fn headless(args: &Args, params: &CataractParams, config: SoftTissueConfig) -> E
                         per(c, g.timed),
                         g.path_sum as f64 / g.builds.max(1) as f64,
                         g.longest_path,
-                        g.shared_forwards
+                        g.shared_forwards,
+                        g.piece_forwards,
+                        g.depth_sum as f64 / g.builds.max(1) as f64
                     );
                 }
             }

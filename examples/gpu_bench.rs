@@ -3,11 +3,13 @@
 //!
 //! ```text
 //! cargo run --release --features gpu --example gpu_bench
-//! cargo run --release --features gpu --example gpu_bench -- --global-walk
+//! cargo run --release --features gpu --example gpu_bench -- --walk pieces
 //! cargo run --release --features gpu --example gpu_bench -- --idle-ms 300
 //! ```
-//! `--global-walk` runs the forward solves in global memory (the kernel for
-//! paths too long for workgroup memory) instead of workgroup memory;
+//! `--walk nodes|pieces|global` picks the forward kernel's walk (by nodes
+//! in workgroup memory, the default; by pieces of supernodes in workgroup
+//! memory; by nodes in global memory, the kernel for paths too long for
+//! workgroup memory), `--piece-nodes N` the size of a piece;
 //! `--upload-each` writes the factor to the device again before every GPU
 //! build, as when each step brings a new factor; `--idle-ms N` lets the
 //! device idle N ms before each GPU build, as between a scene's steps
@@ -20,7 +22,7 @@ use std::time::Instant;
 use bevy::prelude::*;
 use bevy::render::renderer::{RenderAdapterInfo, RenderDevice, RenderQueue};
 use bevy_soft_tissue::contact::ComplianceBackend;
-use bevy_soft_tissue::gpu::GpuCompliance;
+use bevy_soft_tissue::gpu::{ForwardWalk, GpuCompliance};
 use bevy_soft_tissue::prelude::*;
 mod common;
 use bevy_soft_tissue::study::compliance::lens_with_factor;
@@ -30,16 +32,34 @@ use common::bench::pole_contacts;
 #[derive(Parser, Debug)]
 #[command(about = "GPU against CPU compliance build time on the paper-size lens")]
 struct Args {
-    /// Walk the forward solves in global memory (the kernel for paths too
-    /// long for workgroup memory).
-    #[arg(long)]
-    global_walk: bool,
+    /// How the forward kernel walks the paths.
+    #[arg(long, value_enum, default_value_t = Walk::Nodes)]
+    walk: Walk,
+    /// The most nodes in a piece (`--walk pieces`).
+    #[arg(long, default_value_t = bevy_soft_tissue::gpu::MAX_PIECE_NODES)]
+    piece_nodes: usize,
     /// Write the factor to the device again before every GPU build.
     #[arg(long)]
     upload_each: bool,
     /// Let the device idle this many milliseconds before each GPU build.
     #[arg(long, default_value_t = 0)]
     idle_ms: u64,
+    /// After each row, this many more GPU builds back to back (no CPU build or
+    /// idling between them), reported on a row of their own: the device's
+    /// time when it is kept busy.
+    #[arg(long, default_value_t = 0)]
+    back_to_back: usize,
+}
+
+/// [`ForwardWalk`] on the command line.
+#[derive(clap::ValueEnum, Clone, Copy, Debug)]
+enum Walk {
+    /// By nodes, in workgroup memory.
+    Nodes,
+    /// By pieces of supernodes, in workgroup memory.
+    Pieces,
+    /// By nodes, in global memory.
+    Global,
 }
 
 fn median(mut v: Vec<f64>) -> f64 {
@@ -67,7 +87,12 @@ fn main() -> bevy_soft_tissue::error::Result<()> {
         println!("adapter: {} ({:?})", info.name, info.device_type);
     }
     let mut gpu = GpuCompliance::new(device.clone(), queue.clone(), 0);
-    gpu.shared_forward = !args.global_walk;
+    gpu.forward_walk = match args.walk {
+        Walk::Pieces => ForwardWalk::Pieces,
+        Walk::Nodes => ForwardWalk::Nodes,
+        Walk::Global => ForwardWalk::Global,
+    };
+    gpu.piece_nodes = args.piece_nodes;
     let (upload_each, idle_ms) = (args.upload_each, args.idle_ms);
     if idle_ms > 0 {
         println!("the device idles {idle_ms} ms before each GPU build");
@@ -76,11 +101,12 @@ fn main() -> bevy_soft_tissue::error::Result<()> {
         println!("the factor is written to the device again before every GPU build");
     }
     println!(
-        "forward solves walked in {} memory",
-        if gpu.shared_forward {
-            "workgroup"
+        "forward solves walked by {:?}{}",
+        gpu.forward_walk,
+        if gpu.forward_walk == ForwardWalk::Pieces {
+            format!(" ({} nodes a piece at most)", gpu.piece_nodes)
         } else {
-            "global"
+            String::new()
         }
     );
     // The paper-size lens; its factor is never refreshed, so every build uses the same one.
@@ -89,19 +115,20 @@ fn main() -> bevy_soft_tissue::error::Result<()> {
     if gpu.timestamps() {
         println!(
             "per GPU build, mean (ms): `wait` from submit to W mapped on the host; `busy` from the \
-             first kernel's start to the last one's end on the device (timestamps); the kernels; `path` the longest path (nodes), mean over the builds"
+             first kernel's start to the last one's end on the device (timestamps); the kernels; `path` the longest path (nodes), `depth` the forward kernel's steps (pieces or nodes) along the deepest path, means over the builds; `upload` host time writing each factor (ms, mean per upload)"
         );
     } else {
         println!("(this device has no timestamp queries: no busy and kernel columns)");
     }
     println!(
-        "{:>8} {:>14} {:>10} {:>10} {:>10} {:>10} {:>10} {:>10} {:>10} {:>10}",
+        "{:>8} {:>14} {:>10} {:>10} {:>10} {:>10} {:>10} {:>10} {:>10} {:>10} {:>10}",
         "contacts",
         "CPU Factorized",
         "GPU",
         "GPU/CPU",
         "wait",
         "path",
+        "depth",
         "busy",
         "forward",
         "gram",
@@ -112,6 +139,7 @@ fn main() -> bevy_soft_tissue::error::Result<()> {
         let (mut cpu_t, mut gpu_t) = (Vec::new(), Vec::new());
         let (wait0, builds0, paths0) = (gpu.wait_seconds, gpu.built, gpu.path_sum);
         let (span0, kernels0, timed0) = (gpu.span_seconds, gpu.kernel_seconds, gpu.timed);
+        let depth0 = gpu.depth_sum;
         for _ in 0..5 {
             // A new solver each time: no cached columns, W from the body's current factor.
             let build = |body: &mut DeformableBody,
@@ -139,9 +167,10 @@ fn main() -> bevy_soft_tissue::error::Result<()> {
         let builds = (gpu.built - builds0).max(1);
         let wait = (gpu.wait_seconds - wait0) * 1e3 / builds as f64;
         print!(
-            "{n:>8} {c:>14.3} {g:>10.3} {:>10.2} {wait:>10.3} {:>10}",
+            "{n:>8} {c:>14.3} {g:>10.3} {:>10.2} {wait:>10.3} {:>10} {:>10}",
             g / c,
-            (gpu.path_sum - paths0) / builds
+            (gpu.path_sum - paths0) / builds,
+            (gpu.depth_sum - depth0) / builds
         );
         // The device's own timing of the same builds, where it has timestamps.
         let timed = (gpu.timed - timed0) as f64;
@@ -153,6 +182,47 @@ fn main() -> bevy_soft_tissue::error::Result<()> {
             }
         }
         println!();
+        if args.back_to_back > 0 {
+            let (wait0, builds0, paths0) = (gpu.wait_seconds, gpu.built, gpu.path_sum);
+            let (span0, kernels0, timed0) = (gpu.span_seconds, gpu.kernel_seconds, gpu.timed);
+            let depth0 = gpu.depth_sum;
+            let mut s = ContactSolver::new(ContactSettings {
+                factor_reuse: 0,
+                ..Default::default()
+            })?;
+            s.set_contacts(&cs, &[&body], 0.02)?;
+            let t0 = Instant::now();
+            for _ in 0..args.back_to_back {
+                s.build_compliance(&mut [&mut body], PassKind::First, Some(&mut gpu))?;
+            }
+            let g = t0.elapsed().as_secs_f64() * 1e3 / args.back_to_back as f64;
+            let builds = (gpu.built - builds0).max(1);
+            let wait = (gpu.wait_seconds - wait0) * 1e3 / builds as f64;
+            print!(
+                "{:>8} {:>14} {g:>10.3} {:>10} {wait:>10.3} {:>10} {:>10}",
+                format!("{n} b2b"),
+                "-",
+                "-",
+                (gpu.path_sum - paths0) / builds,
+                (gpu.depth_sum - depth0) / builds
+            );
+            let timed = (gpu.timed - timed0) as f64;
+            if timed > 0.0 {
+                let per = |now: f64, then: f64| (now - then) * 1e3 / timed;
+                print!(" {:>10.3}", per(gpu.span_seconds, span0));
+                for (now, then) in gpu.kernel_seconds.iter().zip(kernels0) {
+                    print!(" {:>10.3}", per(*now, then));
+                }
+            }
+            println!();
+        }
+    }
+    if gpu.uploads > 0 {
+        println!(
+            "factor uploads: {}, {:.3} ms each on the host (the pieces' inverses included)",
+            gpu.uploads,
+            gpu.upload_seconds * 1e3 / gpu.uploads as f64
+        );
     }
     Ok(())
 }

@@ -5,8 +5,10 @@
 //   forward   — one workgroup per contact node: the reach-restricted forward
 //               solve Z_k = L⁻¹ E_k of the node's three unit columns, walking only
 //               the node's elimination-tree path (3×3 node supernodes);
-//               `forward_shared` (the walk in workgroup memory) where every
-//               path has at most MAXP nodes, `forward` (in global memory) else;
+//               `forward_pieces` (the walk in workgroup memory, one step
+//               per piece of a supernode) or `forward_shared` (the same,
+//               one step per node) where every path has at most MAXP
+//               nodes, `forward` (in global memory) else;
 //   gram      — one workgroup per pair of contact nodes (a ≤ b): the Gram block
 //               G_ab = Σ Z_aᵀ D⁻¹ Z_b over the common suffix of their paths;
 //   contract  — one invocation per entry of W: W_rs = h² Σ j_raᵀ G_ab j_sb.
@@ -36,6 +38,9 @@ struct Params {
 @group(0) @binding(7) var<storage, read_write> work: array<f32>;
 
 const WG: u32 = 64u;
+// The walks in workgroup memory: one invocation per entry of a column of
+// up to FWG entries in one pass.
+const FWG: u32 = 256u;
 
 var<workgroup> s_len: u32;
 var<workgroup> s_z: array<f32, 9>;
@@ -117,7 +122,8 @@ fn forward(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_inde
 // column entries and diagonal block are loaded one level ahead, so a level
 // waits on workgroup memory and barriers rather than on global loads.
 // Workgroup memory: MAXP × 48 bytes + 40 (15 400 bytes, under WebGPU's
-// 16 384 minimum limit).
+// 16 384 minimum limit); `forward_pieces` adds MAXPIECE × 36 + 16 bytes
+// (15 956 in all).
 const MAXP: u32 = 320u;
 
 var<workgroup> f_path: array<u32, 320>;
@@ -140,7 +146,7 @@ fn path_pos(len: u32, node: u32) -> u32 {
     return lo;
 }
 
-@compute @workgroup_size(64)
+@compute @workgroup_size(FWG)
 fn forward_shared(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) lid: u32) {
     let c = wid.x;
     let pbase = c * params.stride;
@@ -148,7 +154,7 @@ fn forward_shared(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocati
         s_len = min(paths[pbase], MAXP);
     }
     let len = workgroupUniformLoad(&s_len);
-    for (var t = lid; t < len; t += WG) {
+    for (var t = lid; t < len; t += FWG) {
         let j = paths[pbase + 1u + t];
         f_path[t] = j;
         f_cp0[t] = col_ptr[j];
@@ -228,7 +234,7 @@ fn forward_shared(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocati
                 }
             }
         }
-        for (var p = f_cp0[t] + WG + lid; p < f_cp1[t]; p += WG) {
+        for (var p = f_cp0[t] + FWG + lid; p < f_cp1[t]; p += FWG) {
             let q = path_pos(len, row_idx[p]) * 9u;
             for (var col = 0u; col < 3u; col++) {
                 for (var row = 0u; row < 3u; row++) {
@@ -241,6 +247,116 @@ fn forward_shared(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocati
             }
         }
         workgroupBarrier();
+    }
+}
+
+// The forward solves by pieces of supernodes: the walk in workgroup memory
+// (paths of at most MAXP nodes), one step per piece instead of per node.
+// A piece is a run of nodes j, j+1, …, b of one chain of the elimination
+// tree in which every column shares the structure of the last one below
+// the piece (struct(j) = {j+1, …, b} ∪ struct(b)), at most MAXPIECE nodes.
+// A path enters a piece at some node j and leaves it at b, through every
+// node between. Per piece:
+//   1. z of nodes j…b from the piece's inverted diagonal block: the trailing
+//      part (from j) of the inverse of a unit lower triangular matrix is the
+//      inverse of its trailing part, so one product with the piece's
+//      precomputed inverse (`pinv`, row-major, q × q for q = 3 × nodes)
+//      replaces 3·(b − j + 1) serial substitutions;
+//   2. work_r −= Σ_{i=j..b} L_ri z_i for the rows r of column b below the
+//      piece (the entry of row r in column i sits (b − i) entries after
+//      the start of column i, past the piece's own rows).
+// `pieces[3 j ..]` holds, per node j: the piece's first node, its last node
+// and the offset of its inverse in `pinv`.
+@group(0) @binding(14) var<storage, read> pieces: array<u32>;
+@group(0) @binding(15) var<storage, read> pinv: array<f32>;
+
+const MAXPIECE: u32 = 16u;
+
+// (node entering the piece, the piece's last node, q, where the trailing
+// block of the inverse starts).
+var<workgroup> p_info: vec4<u32>;
+var<workgroup> p_z: array<f32, 144>;
+
+@compute @workgroup_size(FWG)
+fn forward_pieces(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) lid: u32) {
+    let c = wid.x;
+    let pbase = c * params.stride;
+    if (lid == 0u) {
+        s_len = min(paths[pbase], MAXP);
+    }
+    let len = workgroupUniformLoad(&s_len);
+    for (var t = lid; t < len; t += FWG) {
+        let j = paths[pbase + 1u + t];
+        f_path[t] = j;
+        f_cp0[t] = col_ptr[j];
+        f_cp1[t] = col_ptr[j + 1u];
+        for (var i = 0u; i < 9u; i++) {
+            // The unit columns at the path's first node.
+            f_work[t * 9u + i] = select(0.0, 1.0, t == 0u && i % 4u == 0u);
+        }
+    }
+    workgroupBarrier();
+    var t = 0u;
+    loop {
+        if (t >= len) {
+            break;
+        }
+        if (lid == 0u) {
+            let j = f_path[t];
+            let a = pieces[3u * j];
+            let b = pieces[3u * j + 1u];
+            let q = 3u * (b - a + 1u);
+            let o = 3u * (j - a);
+            p_info = vec4<u32>(j, b, q, pieces[3u * j + 2u] + o * q + o);
+        }
+        let info = workgroupUniformLoad(&p_info);
+        let j = info.x;
+        let b = info.y;
+        let q = info.z;
+        let base = info.w;
+        let m = b - j + 1u;
+        // 1. z_(j..b) = (inverse's trailing block) work_(j..b), three columns.
+        for (var idx = lid; idx < 9u * m; idx += FWG) {
+            let x = idx / 3u;
+            let col = idx % 3u;
+            var acc = 0.0;
+            for (var y = 0u; y <= x; y++) {
+                acc += pinv[base + x * q + y] * f_work[(t + y / 3u) * 9u + col * 3u + y % 3u];
+            }
+            let o = (x / 3u) * 9u + col * 3u + x % 3u;
+            p_z[o] = acc;
+            zout[(c * params.stride + t) * 9u + o] = acc;
+        }
+        workgroupBarrier();
+        // 2. The rows of column b below the piece (distinct rows: no conflicts).
+        let tb = t + m - 1u;
+        let p0 = f_cp0[tb];
+        let cnt = f_cp1[tb] - p0;
+        for (var e = lid; e < cnt; e += FWG) {
+            let qpos = path_pos(len, row_idx[p0 + e]) * 9u;
+            var acc: array<f32, 9>;
+            for (var i = 0u; i < 9u; i++) {
+                acc[i] = 0.0;
+            }
+            for (var i = 0u; i < m; i++) {
+                let slot = (f_cp0[t + i] + (m - 1u - i) + e) * 9u;
+                let zi = i * 9u;
+                for (var col = 0u; col < 3u; col++) {
+                    for (var row = 0u; row < 3u; row++) {
+                        var s = 0.0;
+                        for (var k = 0u; k < 3u; k++) {
+                            s += lvals[slot + k * 3u + row] * p_z[zi + col * 3u + k];
+                        }
+                        acc[col * 3u + row] += s;
+                    }
+                }
+            }
+            for (var i = 0u; i < 9u; i++) {
+                f_work[qpos + i] -= acc[i];
+            }
+        }
+        workgroupBarrier();
+        t += m;
     }
 }
 

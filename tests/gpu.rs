@@ -9,7 +9,7 @@ use std::time::Duration;
 
 use bevy::prelude::*;
 use bevy::render::renderer::{RenderDevice, RenderQueue};
-use bevy_soft_tissue::gpu::GpuCompliance;
+use bevy_soft_tissue::gpu::{ForwardWalk, GpuCompliance};
 use bevy_soft_tissue::math::Vec3 as DVec3;
 use bevy_soft_tissue::mesh::generate::LENS_RADII;
 use bevy_soft_tissue::plugin::GpuMode;
@@ -101,23 +101,48 @@ fn gpu_w_matches_cpu_w_on_lens_with_90_friction_contacts() {
     let (wg, m2) = on_gpu.delassus();
     assert_eq!(m, m2);
     assert!(gpu.dispatches >= 3 && gpu.built == 1, "{gpu:?}");
-    // The lens's paths fit the walk in workgroup memory.
-    assert_eq!(gpu.shared_forwards, 1, "{gpu:?}");
+    // The lens's paths fit the walk in workgroup memory, by nodes.
+    assert_eq!((gpu.shared_forwards, gpu.piece_forwards), (1, 0), "{gpu:?}");
+    assert_eq!(gpu.depth_sum, gpu.path_sum, "{gpu:?}");
     let rel = relative_difference(wc, wg);
     println!("GPU vs CPU W: max |ΔW| / max |W| = {rel:.2e}");
     assert!(rel <= 1e-4, "relative difference {rel:e}");
-    // The walk in global memory (used for paths too long for workgroup
-    // memory) gives the same W.
-    gpu.shared_forward = false;
-    on_gpu
-        .build_compliance(&mut [&mut body], PassKind::First, Some(&mut gpu))
-        .unwrap();
-    assert_eq!((gpu.built, gpu.shared_forwards), (2, 1), "{gpu:?}");
-    let (wg, _) = on_gpu.delassus();
-    let rel = relative_difference(wc, wg);
-    println!("walk in global memory: max |ΔW| / max |W| = {rel:.2e}");
-    assert!(rel <= 1e-4, "global walk: {rel:e}");
-    gpu.shared_forward = true;
+    // The other walks (in global memory, used for paths too long for
+    // workgroup memory; by pieces of supernodes, of several sizes) give the
+    // same W; by pieces, the deepest path takes fewer steps than it has nodes.
+    for (walk, piece_nodes) in [
+        (ForwardWalk::Global, 16),
+        (ForwardWalk::Pieces, 16),
+        (ForwardWalk::Pieces, 8),
+        (ForwardWalk::Pieces, 1),
+        (ForwardWalk::Pieces, 4),
+    ] {
+        let before = (gpu.built, gpu.shared_forwards, gpu.piece_forwards);
+        let (depth0, path0) = (gpu.depth_sum, gpu.path_sum);
+        (gpu.forward_walk, gpu.piece_nodes) = (walk, piece_nodes);
+        on_gpu
+            .build_compliance(&mut [&mut body], PassKind::First, Some(&mut gpu))
+            .unwrap();
+        let pieces = u64::from(walk == ForwardWalk::Pieces);
+        let shared = u64::from(walk != ForwardWalk::Global);
+        assert_eq!(
+            (gpu.built, gpu.shared_forwards, gpu.piece_forwards),
+            (before.0 + 1, before.1 + shared, before.2 + pieces),
+            "{gpu:?}"
+        );
+        if walk == ForwardWalk::Pieces && piece_nodes > 1 {
+            let (depth, path) = (gpu.depth_sum - depth0, gpu.path_sum - path0);
+            assert!(depth < path, "{depth} steps for {path} nodes: {gpu:?}");
+        }
+        let (wg, _) = on_gpu.delassus();
+        let rel = relative_difference(wc, wg);
+        println!("{walk:?} walk, pieces of {piece_nodes}: max |ΔW| / max |W| = {rel:.2e}");
+        assert!(
+            rel <= 1e-4,
+            "{walk:?} walk, pieces of {piece_nodes}: {rel:e}"
+        );
+    }
+    gpu.forward_walk = ForwardWalk::Nodes;
     // A second build with the same factor reuses the uploaded factor.
     on_gpu
         .build_compliance(&mut [&mut body], PassKind::First, Some(&mut gpu))
@@ -150,6 +175,15 @@ fn gpu_w_matches_cpu_w_on_lens_with_90_friction_contacts() {
         rel <= 1e-4,
         "relative difference {rel:e} after a new factor"
     );
+    // By pieces too: their inverses follow the new factor.
+    gpu.forward_walk = ForwardWalk::Pieces;
+    on_gpu
+        .build_compliance(&mut [&mut body], PassKind::First, Some(&mut gpu))
+        .unwrap();
+    let (wg, _) = on_gpu.delassus();
+    let rel = relative_difference(wc, wg);
+    println!("after a new factor, by pieces: max |ΔW| / max |W| = {rel:.2e}");
+    assert!(rel <= 1e-4, "by pieces after a new factor: {rel:e}");
     assert!(gpu.wait_seconds > 0.0 && gpu.compute_seconds >= gpu.wait_seconds);
     // The device's timestamps: every build timed, the forward solves took
     // time, and the device's busy span lies inside the host's wait.

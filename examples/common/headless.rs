@@ -111,6 +111,10 @@ pub struct GpuCounters {
     pub path_sum: u64,
     /// Builds whose forward solves ran in workgroup memory.
     pub shared_forwards: u64,
+    /// Builds whose forward solves walked by pieces.
+    pub piece_forwards: u64,
+    /// Each build's forward depth (steps along its deepest path), summed.
+    pub depth_sum: u64,
 }
 
 /// Where and from how many contacts the first-pass contact problems are
@@ -399,6 +403,8 @@ fn gpu_counters(app: &App) -> Option<GpuCounters> {
             longest_path: g.0.longest_path,
             path_sum: g.0.path_sum,
             shared_forwards: g.0.shared_forwards,
+            piece_forwards: g.0.piece_forwards,
+            depth_sum: g.0.depth_sum,
         })
 }
 

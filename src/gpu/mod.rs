@@ -13,9 +13,10 @@
 //!   entries `j = Qᵀ h` (already in the factor's frame) are uploaded;
 //! - `shaders/compliance.wgsl` runs three dispatches: one workgroup per contact
 //!   node for the forward solves `Z_k = L⁻¹ E_k` along the node's path (in
-//!   workgroup memory where every path fits, [`GpuCompliance::shared_forward`]), one
-//!   workgroup per node pair for the Gram blocks `Z_aᵀ D⁻¹ Z_b`, and one
-//!   invocation per entry for `W = h² J G Jᵀ`;
+//!   workgroup memory where every path fits, by nodes or by pieces of
+//!   supernodes, see [`ForwardWalk`]), one workgroup per node pair for the
+//!   Gram blocks `Z_aᵀ D⁻¹ Z_b`, and one invocation per entry for
+//!   `W = h² J G Jᵀ`;
 //! - only `W` (rows of this body × rows of this body) is read back.
 //!
 //! The shader is embedded with `include_str!` (no asset loading needed, so
@@ -34,13 +35,14 @@
 //! and [`GpuCompliance::span_seconds`] give the device's own time of each
 //! kernel (one compute pass per kernel, a timestamp at each pass's start and
 //! end, read back behind `W`). On an NVIDIA H200 a build of the 1 183-node
-//! lens waits about 2 ms whatever the contact count, and 1.45–1.8 ms of that
-//! is the forward kernel: a serial walk of up to 273 levels (the longest
-//! path). The walk in workgroup memory (`forward_shared`, for paths of at
-//! most [`SHARED_FORWARD_MAX_PATH`] nodes) took about 9 % off the kernel. A
-//! GPU left idle for seconds lowers its clocks, and the kernels then take
-//! several times longer; see [`GpuMode`](crate::plugin::GpuMode) for what it
-//! means for the crossover.
+//! lens waits 1.4–2.0 ms, most of it the forward kernel: a walk of up to 273
+//! levels (the longest path). What bounds a level is each invocation's chain
+//! of dependent memory loads, not the barriers: walking by pieces of
+//! supernodes cut the levels tenfold but the kernel only by a fifth, and
+//! 256 invocations a workgroup instead of 64 (a column's entries in one
+//! pass) cut it by a third. The driver lowers the clocks under the scene's
+//! light, steady load (see [`GpuMode`](crate::plugin::GpuMode)), and the
+//! kernels then take two to three times longer.
 
 use std::collections::HashMap;
 use std::sync::Arc;
@@ -128,17 +130,54 @@ pub fn add_headless_render(
 /// WGSL source of the compliance kernels.
 pub const SHADER: &str = include_str!("../../shaders/compliance.wgsl");
 
-/// The longest elimination-tree path `forward_shared` walks in workgroup
-/// memory (the shader's `MAXP`); builds with a longer path use `forward`.
+/// The longest elimination-tree path the walks in workgroup memory
+/// (`forward_pieces`, `forward_shared`) take (the shader's `MAXP`); builds
+/// with a longer path use `forward`, in global memory.
 pub const SHARED_FORWARD_MAX_PATH: usize = 320;
 
+/// The most nodes in one piece of a supernode for
+/// [`ForwardWalk::Pieces`] (the shader's `MAXPIECE`).
+pub const MAX_PIECE_NODES: usize = 16;
+
+/// How the forward kernel walks each contact node's elimination-tree path
+/// (all three give the same `W`; paths longer than
+/// [`SHARED_FORWARD_MAX_PATH`] nodes always take [`ForwardWalk::Global`]).
+///
+/// On an NVIDIA H200 (`gpu_bench`, the 1 183-node lens, one factor for every
+/// build) the forward kernel took 0.94–1.12 ms by nodes and 0.74–0.88 ms by
+/// pieces; in the cataract scene, where nearly every build brings a new
+/// factor and the device runs at lowered clocks, 2.8–3.2 ms by nodes and
+/// 3.0–3.3 ms by pieces, and each new factor's pieces cost the stepping
+/// thread 0.46 ms more. So nodes is the default, and pieces pays where a
+/// factor serves several builds (a `Periodic` preconditioner, say).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum ForwardWalk {
+    /// In workgroup memory, one step per node (the default).
+    #[default]
+    Nodes,
+    /// In workgroup memory, one step per piece of a supernode (a chain of
+    /// nodes whose columns of `L` share their structure below the chain, at
+    /// most [`GpuCompliance::piece_nodes`] nodes): the piece's unknowns come
+    /// from one product with its inverted diagonal block, which the host
+    /// computes and writes with each new factor. The lens's paths of
+    /// 247–273 nodes take 27–40 such steps with pieces of 16 nodes.
+    Pieces,
+    /// In global memory, one step per node (needs a `k × n` work buffer).
+    Global,
+}
+
 // `forward_shared`'s workgroup memory (three `u32` and nine `f32` per path
-// node, `s_len` and `s_z` beside them) within WebGPU's minimum limit.
+// node, `s_len` and `s_z` beside them) within WebGPU's minimum limit, and
+// `forward_pieces`' (the same per path node, `s_len`, nine `f32` per piece
+// node and `p_info`).
 const _: () = assert!(SHARED_FORWARD_MAX_PATH * 4 * (3 + 9) + 4 + 36 <= 16_384);
+const _: () =
+    assert!(SHARED_FORWARD_MAX_PATH * 4 * (3 + 9) + 4 + MAX_PIECE_NODES * 36 + 16 <= 16_384);
 
 struct Pipelines {
     forward: wgpu::ComputePipeline,
     forward_shared: wgpu::ComputePipeline,
+    forward_pieces: wgpu::ComputePipeline,
     gram: wgpu::ComputePipeline,
     contract: wgpu::ComputePipeline,
 }
@@ -157,9 +196,110 @@ struct UploadedFactor {
     lvals: GrowBuffer,
     ldiag: GrowBuffer,
     dinv: GrowBuffer,
+    /// Per node: its piece's first and last node and the offset of the
+    /// piece's inverse (see [`piece_table`]), for `piece_nodes` nodes a
+    /// piece at most.
+    pieces: GrowBuffer,
+    piece_table: Vec<u32>,
+    piece_nodes: usize,
+    /// The pieces' inverted diagonal blocks (see [`invert_pieces`]), and the
+    /// factor version they were made from (`None`: none yet for this one).
+    pinv: GrowBuffer,
+    pinv_key: Option<FactorKey>,
+    host_pinv: Vec<f32>,
     /// Host staging of the `f32` conversions, kept between versions.
     host_u32: Vec<u32>,
     host_f32: Vec<f32>,
+    /// Scratch of the inversions (one piece's diagonal block).
+    host_f64: Vec<f64>,
+}
+
+/// Splits the elimination tree's chains into pieces for
+/// [`ForwardWalk::Pieces`]: node `j` continues the piece of `j − 1` when
+/// `j − 1`'s parent is `j`, the structure of column `j − 1` below `j` is
+/// that of column `j` (one entry more), and the piece has fewer than
+/// `max_nodes` nodes. Writes three entries per node into `table` (the
+/// piece's first node, its last node, the offset of its inverse, `q²`
+/// entries for `q = 3 ×` nodes) and returns the inverses' total length.
+fn piece_table(s: &LdltSymbolic, max_nodes: usize, table: &mut Vec<u32>) -> usize {
+    let n = s.n;
+    let count = |j: usize| s.col_ptr[j + 1] - s.col_ptr[j];
+    table.clear();
+    table.resize(3 * n, 0);
+    let (mut start, mut offset) = (0, 0);
+    for j in 0..n {
+        let continues = j + 1 < n
+            && s.parent[j] == j + 1
+            && count(j) == count(j + 1) + 1
+            && j + 1 - start < max_nodes.max(1);
+        if !continues {
+            let q = 3 * (j + 1 - start);
+            for t in &mut table[3 * start..3 * (j + 1)].chunks_exact_mut(3) {
+                t.copy_from_slice(&[start as u32, j as u32, offset as u32]);
+            }
+            offset += q * q;
+            start = j + 1;
+        }
+    }
+    offset
+}
+
+/// Inverts each piece's diagonal block of the unit lower triangular `L`
+/// (3×3 unit diagonal blocks, the piece's own off-diagonal blocks) into
+/// `out` (row-major, `q × q` per piece at the offsets of `table`), in `f64`
+/// then rounded. `scratch` holds one block.
+fn invert_pieces(f: &LdltFactor, table: &[u32], out: &mut [f32], scratch: &mut Vec<f64>) {
+    let s = &*f.symbolic;
+    let mut a = 0;
+    while a < s.n {
+        let b = table[3 * a + 1] as usize;
+        let off = table[3 * a + 2] as usize;
+        let q = 3 * (b - a + 1);
+        // T, the piece's block of L, row-major.
+        scratch.clear();
+        scratch.resize(2 * q * q, 0.0);
+        let (t, x) = scratch.split_at_mut(q * q);
+        for j in a..=b {
+            let c0 = 3 * (j - a);
+            let [l10, l20, l21] = f.ldiag[j];
+            t[c0 * q + c0] = 1.0;
+            t[(c0 + 1) * q + c0] = l10;
+            t[(c0 + 1) * q + c0 + 1] = 1.0;
+            t[(c0 + 2) * q + c0] = l20;
+            t[(c0 + 2) * q + c0 + 1] = l21;
+            t[(c0 + 2) * q + c0 + 2] = 1.0;
+            // Column j's first entries are the piece's later nodes, in order.
+            for i in j + 1..=b {
+                let slot = s.col_ptr[j] + (i - j - 1);
+                debug_assert_eq!(s.row_idx[slot], i);
+                let l = &f.l[slot];
+                let r0 = 3 * (i - a);
+                for r in 0..3 {
+                    for c in 0..3 {
+                        t[(r0 + r) * q + c0 + c] = l[(r, c)];
+                    }
+                }
+            }
+        }
+        // X = T⁻¹ row by row: X_r = e_r − Σ_{k<r} T_rk X_k (X unit lower).
+        for r in 0..q {
+            let (done, rest) = x.split_at_mut(r * q);
+            let row = &mut rest[..q];
+            row[r] = 1.0;
+            for k in 0..r {
+                let tk = t[r * q + k];
+                if tk != 0.0 {
+                    for (v, w) in row[..=k].iter_mut().zip(&done[k * q..=k * q + k]) {
+                        *v -= tk * w;
+                    }
+                }
+            }
+        }
+        for (o, v) in out[off..off + q * q].iter_mut().zip(x.iter()) {
+            *o = *v as f32;
+        }
+        a = b + 1;
+    }
 }
 
 /// A device buffer kept between steps, grown when a step needs more.
@@ -274,12 +414,24 @@ pub struct GpuCompliance {
     pub span_seconds: f64,
     /// Builds timed by the device's timestamps.
     pub timed: u64,
-    /// Walk the forward solves in workgroup memory (`forward_shared`) where
-    /// every path of the build has at most [`SHARED_FORWARD_MAX_PATH`] nodes
-    /// (default); `false` always walks them in global memory (`forward`).
-    pub shared_forward: bool,
-    /// Builds whose forward solves ran in workgroup memory.
+    /// How the forward kernel walks the paths (default
+    /// [`ForwardWalk::Nodes`]; builds with a path longer than
+    /// [`SHARED_FORWARD_MAX_PATH`] nodes walk in global memory whatever it says).
+    pub forward_walk: ForwardWalk,
+    /// The most nodes in a piece for [`ForwardWalk::Pieces`], 1 to
+    /// [`MAX_PIECE_NODES`] (the default): a larger piece
+    /// means fewer steps and
+    /// a larger inverse to write with each factor (`q³/6` operations on the
+    /// host for `q = 3 ×` nodes).
+    pub piece_nodes: usize,
+    /// Builds whose forward solves ran in workgroup memory (either walk).
     pub shared_forwards: u64,
+    /// Builds whose forward solves walked by pieces.
+    pub piece_forwards: u64,
+    /// Each build's serial depth (the most steps any of its forward solves
+    /// took: pieces for [`ForwardWalk::Pieces`], nodes otherwise), summed
+    /// over the builds.
+    pub depth_sum: u64,
     /// The longest elimination-tree path of any build so far (nodes): the
     /// forward kernel's serial depth.
     pub longest_path: usize,
@@ -313,7 +465,9 @@ impl std::fmt::Debug for GpuCompliance {
             .field("kernel_seconds", &self.kernel_seconds)
             .field("span_seconds", &self.span_seconds)
             .field("timed", &self.timed)
+            .field("forward_walk", &self.forward_walk)
             .field("shared_forwards", &self.shared_forwards)
+            .field("piece_forwards", &self.piece_forwards)
             .finish()
     }
 }
@@ -384,8 +538,11 @@ impl GpuCompliance {
             kernel_seconds: [0.0; 3],
             span_seconds: 0.0,
             timed: 0,
-            shared_forward: true,
+            forward_walk: ForwardWalk::Nodes,
+            piece_nodes: MAX_PIECE_NODES,
             shared_forwards: 0,
+            piece_forwards: 0,
+            depth_sum: 0,
             longest_path: 0,
             path_sum: 0,
         }
@@ -420,6 +577,7 @@ impl GpuCompliance {
             let p = Pipelines {
                 forward: make("forward"),
                 forward_shared: make("forward_shared"),
+                forward_pieces: make("forward_pieces"),
                 gram: make("gram_blocks"),
                 contract: make("contract"),
             };
@@ -471,6 +629,7 @@ impl GpuCompliance {
                 upload(device, queue, buf, label, STORAGE, h32);
             }
             up.symbolic = Some(f.symbolic.clone());
+            up.piece_nodes = 0;
         }
         // The preconditioner's single-precision copy where the factor has one.
         match f.l_single() {
@@ -496,8 +655,45 @@ impl GpuCompliance {
                 .iter()
                 .flat_map(|d| [1.0 / d.x, 1.0 / d.y, 1.0 / d.z].map(|x| x as f32)),
         );
+        up.pinv_key = None;
         self.uploads += 1;
         self.upload_seconds += t0.elapsed().as_secs_f64();
+    }
+
+    /// Writes the piece table and the pieces' inverses of the uploaded
+    /// factor `f` for [`ForwardWalk::Pieces`] (once per factor version and
+    /// piece size; counted in [`Self::upload_seconds`]).
+    fn upload_pieces(&mut self, body_id: u64, f: &LdltFactor) -> Result<()> {
+        let piece_nodes = self.piece_nodes.clamp(1, MAX_PIECE_NODES);
+        let up = self
+            .factors
+            .get_mut(&body_id)
+            .ok_or(SoftTissueError::Gpu("factor not uploaded".into()))?;
+        if up.pinv_key.is_some() && up.piece_nodes == piece_nodes {
+            return Ok(());
+        }
+        let t0 = Instant::now();
+        let device = self.device.wgpu_device();
+        let queue: &wgpu::Queue = &self.queue;
+        if up.piece_nodes != piece_nodes {
+            let len = piece_table(&f.symbolic, piece_nodes, &mut up.piece_table);
+            upload(
+                device,
+                queue,
+                &mut up.pieces,
+                "pieces",
+                STORAGE,
+                &up.piece_table,
+            );
+            up.piece_nodes = piece_nodes;
+            up.host_pinv.clear();
+            up.host_pinv.resize(len, 0.0);
+        }
+        invert_pieces(f, &up.piece_table, &mut up.host_pinv, &mut up.host_f64);
+        upload(device, queue, &mut up.pinv, "pinv", STORAGE, &up.host_pinv);
+        up.pinv_key = up.key;
+        self.upload_seconds += t0.elapsed().as_secs_f64();
+        Ok(())
     }
 
     /// Marks every uploaded factor stale: the next build of each body writes
@@ -562,6 +758,32 @@ impl GpuCompliance {
             longest = longest.max(st.path.len() - start);
         }
         st.path_offsets.push(st.path.len());
+        // The walk: by pieces or by nodes in workgroup memory where every
+        // path fits, else in global memory; its serial depth.
+        let walk = match self.forward_walk {
+            _ if longest > SHARED_FORWARD_MAX_PATH => ForwardWalk::Global,
+            w => w,
+        };
+        let depth = if walk == ForwardWalk::Pieces {
+            self.upload_pieces(body_id, factor)?;
+            let table = &self.factors[&body_id].piece_table;
+            let st = &self.step;
+            // A step per piece entered: at a path's first node or a piece's first.
+            st.path_offsets
+                .windows(2)
+                .map(|w| {
+                    let p = &st.path[w[0]..w[1]];
+                    p.iter()
+                        .enumerate()
+                        .filter(|&(i, &j)| i == 0 || table[3 * j as usize] == j)
+                        .count()
+                })
+                .max()
+                .unwrap_or(0)
+        } else {
+            longest
+        };
+        let st = &mut self.step;
         let stride = longest + 1;
         st.paths.clear();
         st.paths.resize(k * stride, 0);
@@ -626,8 +848,8 @@ impl GpuCompliance {
         );
         let z =
             st.z.ensure(device, "z", STORAGE, (k * stride * 9 * 4) as u64);
-        // The walk in workgroup memory needs no `work` buffer (k × n blocks).
-        let shared = self.shared_forward && longest <= SHARED_FORWARD_MAX_PATH;
+        // The walks in workgroup memory need no `work` buffer (k × n blocks).
+        let shared = walk != ForwardWalk::Global;
         let work = if shared {
             None
         } else {
@@ -705,12 +927,26 @@ impl GpuCompliance {
             e(5, paths_buf),
             e(6, z),
         ];
-        let (forward, bg_forward) = match work {
-            None => (
+        let (forward, bg_forward) = match (walk, work) {
+            (ForwardWalk::Pieces, _) => {
+                let up = &self.factors[&body_id];
+                let entries = [
+                    e(0, params),
+                    e(1, col_ptr),
+                    e(2, row_idx),
+                    e(3, lvals),
+                    e(5, paths_buf),
+                    e(6, z),
+                    e(14, up.pieces.get()?),
+                    e(15, up.pinv.get()?),
+                ];
+                (&pl.forward_pieces, bind(&pl.forward_pieces, &entries))
+            }
+            (_, None) => (
                 &pl.forward_shared,
                 bind(&pl.forward_shared, &forward_entries),
             ),
-            Some(work) => {
+            (_, Some(work)) => {
                 let [a, b, c, d, f, g, h] = forward_entries;
                 let entries = [a, b, c, d, f, g, h, e(7, work)];
                 (&pl.forward, bind(&pl.forward, &entries))
@@ -776,6 +1012,8 @@ impl GpuCompliance {
         self.queue.submit([enc.finish()]);
         self.dispatches += 3;
         self.shared_forwards += u64::from(shared);
+        self.piece_forwards += u64::from(walk == ForwardWalk::Pieces);
+        self.depth_sum += depth as u64;
         self.longest_path = self.longest_path.max(longest);
         self.path_sum += longest as u64;
         let slice = readback.slice(..stamps_at + stamps_bytes);
@@ -850,6 +1088,110 @@ impl ComplianceBackend for GpuCompliance {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::body::{BodySettings, DeformableBody};
+    use crate::material::TissueMaterial;
+    use crate::math::Mat3;
+    use crate::mesh::generate;
+    use crate::solver::PreconditionerKind;
+
+    /// A factor of the paper-size lens.
+    fn lens_factor() -> LdltFactor {
+        let mesh = generate::ellipsoid(generate::LENS_RADII, 12).unwrap();
+        let settings = BodySettings {
+            preconditioner: PreconditionerKind::Periodic { every: 1000 },
+            ..Default::default()
+        };
+        let mut body =
+            DeformableBody::new(mesh, TissueMaterial::new(1000.0, 5e3, 0.45), settings).unwrap();
+        body.step(0.02).unwrap();
+        body.preconditioner().factor_state().unwrap().factor.clone()
+    }
+
+    /// The host side of `forward_pieces`, step for step on the CPU: the
+    /// piece table and inverses give the same `L⁻¹ E_node` as the factor's
+    /// own forward solve, for every piece size, and a piece's columns share
+    /// the structure of its last column below it.
+    #[test]
+    fn a_walk_by_pieces_solves_like_the_factor() {
+        let f = lens_factor();
+        let s = &*f.symbolic;
+        let (mut table, mut scratch) = (Vec::new(), Vec::new());
+        let mut work = vec![Mat3::zeros(); s.n];
+        for max_nodes in [1, 4, MAX_PIECE_NODES] {
+            let len = piece_table(s, max_nodes, &mut table);
+            let mut inv = vec![0.0f32; len];
+            invert_pieces(&f, &table, &mut inv, &mut scratch);
+            let mut widest = 0;
+            for j in 0..s.n {
+                let (a, b) = (table[3 * j] as usize, table[3 * j + 1] as usize);
+                assert!(a <= j && j <= b && b - a < max_nodes);
+                widest = widest.max(b - a + 1);
+                let rows = |c: usize| &s.row_idx[s.col_ptr[c]..s.col_ptr[c + 1]];
+                let own: Vec<usize> = (j + 1..=b).collect();
+                assert_eq!(&rows(j)[..b - j], &own[..]);
+                assert_eq!(&rows(j)[b - j..], rows(b));
+            }
+            if max_nodes > 1 {
+                assert!(widest > 1, "no piece of more than one node");
+            }
+            for node in (0..s.n).step_by(97) {
+                let (mut path, mut blocks) = (Vec::new(), Vec::new());
+                f.node_forward_solve(node, &mut work, &mut path, &mut blocks);
+                // The walk by pieces, in f64 over the f32 inverses.
+                let mut w: Vec<[f64; 9]> = vec![[0.0; 9]; path.len()];
+                for c in 0..3 {
+                    w[0][4 * c] = 1.0;
+                }
+                let pos = |r: usize| path.binary_search(&r).unwrap();
+                let mut t = 0;
+                while t < path.len() {
+                    let j = path[t];
+                    let (a, b, off) = (
+                        table[3 * j] as usize,
+                        table[3 * j + 1] as usize,
+                        table[3 * j + 2] as usize,
+                    );
+                    let (q, o, m) = (3 * (b - a + 1), 3 * (j - a), b - j + 1);
+                    assert_eq!(&path[t..t + m], &(j..=b).collect::<Vec<_>>()[..]);
+                    let mut z = vec![[0.0f64; 9]; m];
+                    for x in 0..3 * m {
+                        for col in 0..3 {
+                            let mut acc = 0.0;
+                            for y in 0..=x {
+                                acc += inv[off + (o + x) * q + o + y] as f64
+                                    * w[t + y / 3][3 * col + y % 3];
+                            }
+                            z[x / 3][3 * col + x % 3] = acc;
+                        }
+                    }
+                    for (e, &r) in rows_of(s, b).iter().enumerate() {
+                        for i in j..=b {
+                            let l = &f.l[s.col_ptr[i] + (b - i) + e];
+                            let zi = Mat3::from_column_slice(&z[i - j]);
+                            let d = l * zi;
+                            for (v, dv) in w[pos(r)].iter_mut().zip(d.iter()) {
+                                *v -= dv;
+                            }
+                        }
+                    }
+                    for (i, zi) in z.iter().enumerate() {
+                        let want = &blocks[t + i];
+                        let got = Mat3::from_column_slice(zi);
+                        let err = (got - want).abs().max();
+                        assert!(
+                            err <= 1e-4 * want.abs().max().max(1.0),
+                            "node {node}, pieces of {max_nodes}: {err:e}"
+                        );
+                    }
+                    t += m;
+                }
+            }
+        }
+    }
+
+    fn rows_of(s: &LdltSymbolic, c: usize) -> &[usize] {
+        &s.row_idx[s.col_ptr[c]..s.col_ptr[c + 1]]
+    }
 
     /// The host's limit for the walk in workgroup memory is the shader's
     /// `MAXP`, and the shader's workgroup arrays are sized by it.
@@ -862,6 +1204,8 @@ mod tests {
             format!("f_cp0: array<u32, {SHARED_FORWARD_MAX_PATH}>"),
             format!("f_cp1: array<u32, {SHARED_FORWARD_MAX_PATH}>"),
             format!("f_work: array<f32, {}>", 9 * SHARED_FORWARD_MAX_PATH),
+            format!("const MAXPIECE: u32 = {MAX_PIECE_NODES}u;"),
+            format!("p_z: array<f32, {}>", 9 * MAX_PIECE_NODES),
         ] {
             assert!(SHADER.contains(&decl), "shader lacks `{decl}`");
         }
