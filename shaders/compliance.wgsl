@@ -146,6 +146,46 @@ fn path_pos(len: u32, node: u32) -> u32 {
     return lo;
 }
 
+// z = L_jj⁻¹ w for one column, L_jj unit lower triangular (l10, l20, l21 in d).
+fn unit_lower_solve(w: vec3<f32>, d: vec3<f32>) -> vec3<f32> {
+    let x1 = w.y - d.x * w.x;
+    return vec3<f32>(w.x, x1, w.z - d.y * w.x - d.z * x1);
+}
+
+// The 3×3 block of f_work at q (column-major), as a matrix.
+fn work_block(q: u32) -> mat3x3<f32> {
+    return mat3x3<f32>(
+        f_work[q], f_work[q + 1u], f_work[q + 2u],
+        f_work[q + 3u], f_work[q + 4u], f_work[q + 5u],
+        f_work[q + 6u], f_work[q + 7u], f_work[q + 8u],
+    );
+}
+
+// f_work's block at q −= m.
+fn sub_work_block(q: u32, m: mat3x3<f32>) {
+    f_work[q] -= m[0].x;
+    f_work[q + 1u] -= m[0].y;
+    f_work[q + 2u] -= m[0].z;
+    f_work[q + 3u] -= m[1].x;
+    f_work[q + 4u] -= m[1].y;
+    f_work[q + 5u] -= m[1].z;
+    f_work[q + 6u] -= m[2].x;
+    f_work[q + 7u] -= m[2].y;
+    f_work[q + 8u] -= m[2].z;
+}
+
+// Block p of L (column-major), as a matrix.
+fn l_block(p: u32) -> mat3x3<f32> {
+    let b = p * 9u;
+    return mat3x3<f32>(
+        lvals[b], lvals[b + 1u], lvals[b + 2u],
+        lvals[b + 3u], lvals[b + 4u], lvals[b + 5u],
+        lvals[b + 6u], lvals[b + 7u], lvals[b + 8u],
+    );
+}
+
+var<workgroup> s_zm: mat3x3<f32>;
+
 @compute @workgroup_size(FWG)
 fn forward_shared(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) lid: u32) {
     let c = wid.x;
@@ -165,9 +205,9 @@ fn forward_shared(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocati
         }
     }
     workgroupBarrier();
-    // Level 0's entries and diagonal block.
+    // Level 0's entry of this invocation and diagonal block.
     var nr = 0u;
-    var nl: array<f32, 9>;
+    var nl = mat3x3<f32>();
     var nok = false;
     var nd = vec3<f32>(0.0, 0.0, 0.0);
     if (len > 0u) {
@@ -175,9 +215,7 @@ fn forward_shared(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocati
         nok = p < f_cp1[0];
         if (nok) {
             nr = row_idx[p];
-            for (var i = 0u; i < 9u; i++) {
-                nl[i] = lvals[p * 9u + i];
-            }
+            nl = l_block(p);
         }
         if (lid == 0u) {
             let j = f_path[0];
@@ -195,56 +233,50 @@ fn forward_shared(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocati
             nok = p < f_cp1[t + 1u];
             if (nok) {
                 nr = row_idx[p];
-                for (var i = 0u; i < 9u; i++) {
-                    nl[i] = lvals[p * 9u + i];
-                }
+                nl = l_block(p);
             }
             if (lid == 0u) {
                 let j = f_path[t + 1u];
                 nd = vec3<f32>(ldiag[j * 3u], ldiag[j * 3u + 1u], ldiag[j * 3u + 2u]);
             }
         }
+        // Where this invocation's row sits on the path: found while the
+        // first invocation solves the diagonal block (by it after).
+        var q = 0u;
+        if (ok0 && lid != 0u) {
+            q = path_pos(len, r0) * 9u;
+        }
         if (lid == 0u) {
-            // z_j = L_jj⁻¹ work_j, L_jj unit lower triangular (l10, l20, l21).
-            for (var col = 0u; col < 3u; col++) {
-                let x0 = f_work[t * 9u + col * 3u];
-                let x1 = f_work[t * 9u + col * 3u + 1u] - d.x * x0;
-                let x2 = f_work[t * 9u + col * 3u + 2u] - d.y * x0 - d.z * x1;
-                s_z[col * 3u] = x0;
-                s_z[col * 3u + 1u] = x1;
-                s_z[col * 3u + 2u] = x2;
-                let o = (c * params.stride + t) * 9u + col * 3u;
-                zout[o] = x0;
-                zout[o + 1u] = x1;
-                zout[o + 2u] = x2;
+            let w = work_block(t * 9u);
+            let z = mat3x3<f32>(
+                unit_lower_solve(w[0], d),
+                unit_lower_solve(w[1], d),
+                unit_lower_solve(w[2], d),
+            );
+            s_zm = z;
+            let o = (c * params.stride + t) * 9u;
+            zout[o] = z[0].x;
+            zout[o + 1u] = z[0].y;
+            zout[o + 2u] = z[0].z;
+            zout[o + 3u] = z[1].x;
+            zout[o + 4u] = z[1].y;
+            zout[o + 5u] = z[1].z;
+            zout[o + 6u] = z[2].x;
+            zout[o + 7u] = z[2].y;
+            zout[o + 8u] = z[2].z;
+            if (ok0) {
+                q = path_pos(len, r0) * 9u;
             }
         }
         workgroupBarrier();
         // work_r -= L_rj z_j for the rows of column j (distinct rows: no conflicts):
-        // the first WG entries from the loads above, any further ones directly.
+        // the first FWG entries from the loads above, any further ones directly.
+        let z = s_zm;
         if (ok0) {
-            let q = path_pos(len, r0) * 9u;
-            for (var col = 0u; col < 3u; col++) {
-                for (var row = 0u; row < 3u; row++) {
-                    var acc = 0.0;
-                    for (var i = 0u; i < 3u; i++) {
-                        acc += l0[i * 3u + row] * s_z[col * 3u + i];
-                    }
-                    f_work[q + col * 3u + row] -= acc;
-                }
-            }
+            sub_work_block(q, l0 * z);
         }
         for (var p = f_cp0[t] + FWG + lid; p < f_cp1[t]; p += FWG) {
-            let q = path_pos(len, row_idx[p]) * 9u;
-            for (var col = 0u; col < 3u; col++) {
-                for (var row = 0u; row < 3u; row++) {
-                    var acc = 0.0;
-                    for (var i = 0u; i < 3u; i++) {
-                        acc += lvals[p * 9u + i * 3u + row] * s_z[col * 3u + i];
-                    }
-                    f_work[q + col * 3u + row] -= acc;
-                }
-            }
+            sub_work_block(path_pos(len, row_idx[p]) * 9u, l_block(p) * z);
         }
         workgroupBarrier();
     }
@@ -334,26 +366,17 @@ fn forward_pieces(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocati
         let cnt = f_cp1[tb] - p0;
         for (var e = lid; e < cnt; e += FWG) {
             let qpos = path_pos(len, row_idx[p0 + e]) * 9u;
-            var acc: array<f32, 9>;
-            for (var i = 0u; i < 9u; i++) {
-                acc[i] = 0.0;
-            }
+            var acc = mat3x3<f32>();
             for (var i = 0u; i < m; i++) {
-                let slot = (f_cp0[t + i] + (m - 1u - i) + e) * 9u;
                 let zi = i * 9u;
-                for (var col = 0u; col < 3u; col++) {
-                    for (var row = 0u; row < 3u; row++) {
-                        var s = 0.0;
-                        for (var k = 0u; k < 3u; k++) {
-                            s += lvals[slot + k * 3u + row] * p_z[zi + col * 3u + k];
-                        }
-                        acc[col * 3u + row] += s;
-                    }
-                }
+                let z = mat3x3<f32>(
+                    p_z[zi], p_z[zi + 1u], p_z[zi + 2u],
+                    p_z[zi + 3u], p_z[zi + 4u], p_z[zi + 5u],
+                    p_z[zi + 6u], p_z[zi + 7u], p_z[zi + 8u],
+                );
+                acc += l_block(f_cp0[t + i] + (m - 1u - i) + e) * z;
             }
-            for (var i = 0u; i < 9u; i++) {
-                f_work[qpos + i] -= acc[i];
-            }
+            sub_work_block(qpos, acc);
         }
         workgroupBarrier();
         t += m;
@@ -364,7 +387,16 @@ fn forward_pieces(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocati
 @group(0) @binding(9) var<storage, read_write> gram: array<f32>;
 
 var<workgroup> s_common: u32;
-var<workgroup> s_acc: array<array<f32, 9>, 64>;
+
+// The 3×3 block of zout at o (column-major), as a matrix.
+fn z_block(o: u32) -> mat3x3<f32> {
+    return mat3x3<f32>(
+        zout[o], zout[o + 1u], zout[o + 2u],
+        zout[o + 3u], zout[o + 4u], zout[o + 5u],
+        zout[o + 6u], zout[o + 7u], zout[o + 8u],
+    );
+}
+var<workgroup> s_acc: array<mat3x3<f32>, 64>;
 
 @compute @workgroup_size(64)
 fn gram_blocks(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) lid: u32) {
@@ -392,26 +424,16 @@ fn gram_blocks(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_
         s_common = shared_len;
     }
     let shared_len = workgroupUniformLoad(&s_common);
-    var acc: array<f32, 9>;
-    for (var i = 0u; i < 9u; i++) {
-        acc[i] = 0.0;
-    }
+    var acc = mat3x3<f32>();
     for (var t = lid; t < shared_len; t += WG) {
         let ia = la - shared_len + t;
         let ib = lb - shared_len + t;
         let node = paths[pa + 1u + ia];
-        let za = (a * params.stride + ia) * 9u;
-        let zb = (b * params.stride + ib) * 9u;
+        let za = z_block((a * params.stride + ia) * 9u);
+        let zb = z_block((b * params.stride + ib) * 9u);
+        let dv = vec3<f32>(dinv[node * 3u], dinv[node * 3u + 1u], dinv[node * 3u + 2u]);
         // G += Z_aᵀ diag(dinv) Z_b
-        for (var ca = 0u; ca < 3u; ca++) {
-            for (var cb = 0u; cb < 3u; cb++) {
-                var s = 0.0;
-                for (var r = 0u; r < 3u; r++) {
-                    s += zout[za + ca * 3u + r] * dinv[node * 3u + r] * zout[zb + cb * 3u + r];
-                }
-                acc[cb * 3u + ca] += s;
-            }
-        }
+        acc += transpose(za) * mat3x3<f32>(zb[0] * dv, zb[1] * dv, zb[2] * dv);
     }
     s_acc[lid] = acc;
     workgroupBarrier();
@@ -421,21 +443,24 @@ fn gram_blocks(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_
             break;
         }
         if (lid < stride) {
-            for (var i = 0u; i < 9u; i++) {
-                s_acc[lid][i] += s_acc[lid + stride][i];
-            }
+            s_acc[lid] += s_acc[lid + stride];
         }
         workgroupBarrier();
         stride = stride / 2u;
     }
     if (lid == 0u) {
         let k = params.k;
-        for (var r = 0u; r < 3u; r++) {
-            for (var c = 0u; c < 3u; c++) {
-                let v = s_acc[0][c * 3u + r];
-                gram[(a * k + b) * 9u + c * 3u + r] = v;
-                gram[(b * k + a) * 9u + r * 3u + c] = v;
-            }
+        let g = s_acc[0];
+        let gt = transpose(g);
+        let ab = (a * k + b) * 9u;
+        let ba = (b * k + a) * 9u;
+        for (var col = 0u; col < 3u; col++) {
+            gram[ab + col * 3u] = g[col].x;
+            gram[ab + col * 3u + 1u] = g[col].y;
+            gram[ab + col * 3u + 2u] = g[col].z;
+            gram[ba + col * 3u] = gt[col].x;
+            gram[ba + col * 3u + 1u] = gt[col].y;
+            gram[ba + col * 3u + 2u] = gt[col].z;
         }
     }
 }

@@ -35,14 +35,14 @@
 //! and [`GpuCompliance::span_seconds`] give the device's own time of each
 //! kernel (one compute pass per kernel, a timestamp at each pass's start and
 //! end, read back behind `W`). On an NVIDIA H200 a build of the 1 183-node
-//! lens waits 1.4–2.0 ms, most of it the forward kernel: a walk of up to 273
-//! levels (the longest path). What bounds a level is each invocation's chain
-//! of dependent memory loads, not the barriers: walking by pieces of
-//! supernodes cut the levels tenfold but the kernel only by a fifth, and
-//! 256 invocations a workgroup instead of 64 (a column's entries in one
-//! pass) cut it by a third. The driver lowers the clocks under the scene's
-//! light, steady load (see [`GpuMode`](crate::plugin::GpuMode)), and the
-//! kernels then take two to three times longer.
+//! lens waits 0.6–1.1 ms for 30–260 contacts, about half of it the forward
+//! kernel: a walk of up to 273 levels (the longest path). The kernels do
+//! their 3×3 block arithmetic on WGSL's `mat3x3` values: with the blocks in
+//! arrays indexed in loops the forward and Gram kernels ran two to three
+//! times slower (the arrays likely left registers for local memory). The
+//! driver lowers the clocks under the scene's light, steady load (see
+//! [`GpuMode`](crate::plugin::GpuMode)), and the kernels then take two to
+//! four times longer.
 
 use std::collections::HashMap;
 use std::sync::Arc;
@@ -144,12 +144,13 @@ pub const MAX_PIECE_NODES: usize = 16;
 /// [`SHARED_FORWARD_MAX_PATH`] nodes always take [`ForwardWalk::Global`]).
 ///
 /// On an NVIDIA H200 (`gpu_bench`, the 1 183-node lens, one factor for every
-/// build) the forward kernel took 0.94–1.12 ms by nodes and 0.74–0.88 ms by
-/// pieces; in the cataract scene, where nearly every build brings a new
-/// factor and the device runs at lowered clocks, 2.8–3.2 ms by nodes and
-/// 3.0–3.3 ms by pieces, and each new factor's pieces cost the stepping
-/// thread 0.46 ms more. So nodes is the default, and pieces pays where a
-/// factor serves several builds (a `Periodic` preconditioner, say).
+/// build, 30–260 contacts) the forward kernel took 0.34–0.40 ms by nodes and
+/// 0.16–0.19 ms by pieces, but writing a new factor cost the stepping thread
+/// 0.33–0.36 ms by nodes and 0.94–1.15 ms by pieces (their inverses). In
+/// the cataract scene nearly every build brings a new factor, so nodes is
+/// the default; pieces pays where a factor serves five builds or more (a
+/// `Periodic` preconditioner, or `W` built from scratch several times per
+/// factor).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum ForwardWalk {
     /// In workgroup memory, one step per node (the default).
