@@ -43,9 +43,8 @@ const WG: u32 = 64u;
 const FWG: u32 = 256u;
 
 var<workgroup> s_len: u32;
-var<workgroup> s_z: array<f32, 9>;
 
-@compute @workgroup_size(64)
+@compute @workgroup_size(FWG)
 fn forward(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) lid: u32) {
     let c = wid.x;
     let pbase = c * params.stride;
@@ -55,19 +54,11 @@ fn forward(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_inde
     }
     let len = workgroupUniformLoad(&s_len);
     // Clear the rows this solve touches (all on the path), set the unit columns.
-    for (var t = lid; t < len; t += WG) {
+    for (var t = lid; t < len; t += FWG) {
         let node = paths[pbase + 1u + t];
         for (var i = 0u; i < 9u; i++) {
-            work[wbase + node * 9u + i] = 0.0;
+            work[wbase + node * 9u + i] = select(0.0, 1.0, t == 0u && i % 4u == 0u);
         }
-    }
-    storageBarrier();
-    workgroupBarrier();
-    if (lid == 0u && len > 0u) {
-        let first = paths[pbase + 1u];
-        work[wbase + first * 9u + 0u] = 1.0;
-        work[wbase + first * 9u + 4u] = 1.0;
-        work[wbase + first * 9u + 8u] = 1.0;
     }
     storageBarrier();
     workgroupBarrier();
@@ -75,39 +66,33 @@ fn forward(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_inde
         let j = paths[pbase + 1u + t];
         if (lid == 0u) {
             // z_j = L_jj⁻¹ work_j, L_jj unit lower triangular (l10, l20, l21).
-            let l10 = ldiag[j * 3u];
-            let l20 = ldiag[j * 3u + 1u];
-            let l21 = ldiag[j * 3u + 2u];
-            for (var col = 0u; col < 3u; col++) {
-                let b0 = work[wbase + j * 9u + col * 3u];
-                let b1 = work[wbase + j * 9u + col * 3u + 1u];
-                let b2 = work[wbase + j * 9u + col * 3u + 2u];
-                let x0 = b0;
-                let x1 = b1 - l10 * x0;
-                let x2 = b2 - l20 * x0 - l21 * x1;
-                s_z[col * 3u] = x0;
-                s_z[col * 3u + 1u] = x1;
-                s_z[col * 3u + 2u] = x2;
-            }
-            for (var i = 0u; i < 9u; i++) {
-                zout[(c * params.stride + t) * 9u + i] = s_z[i];
-            }
+            let d = vec3<f32>(ldiag[j * 3u], ldiag[j * 3u + 1u], ldiag[j * 3u + 2u]);
+            let q = wbase + j * 9u;
+            let z = mat3x3<f32>(
+                unit_lower_solve(vec3<f32>(work[q], work[q + 1u], work[q + 2u]), d),
+                unit_lower_solve(vec3<f32>(work[q + 3u], work[q + 4u], work[q + 5u]), d),
+                unit_lower_solve(vec3<f32>(work[q + 6u], work[q + 7u], work[q + 8u]), d),
+            );
+            s_zm = z;
+            store_z((c * params.stride + t) * 9u, z);
         }
         workgroupBarrier();
         // work_r -= L_rj z_j for the rows of column j (distinct rows: no conflicts).
+        let z = s_zm;
         let p0 = col_ptr[j];
         let p1 = col_ptr[j + 1u];
-        for (var p = p0 + lid; p < p1; p += WG) {
-            let r = row_idx[p];
-            for (var col = 0u; col < 3u; col++) {
-                for (var row = 0u; row < 3u; row++) {
-                    var acc = 0.0;
-                    for (var q = 0u; q < 3u; q++) {
-                        acc += lvals[p * 9u + q * 3u + row] * s_z[col * 3u + q];
-                    }
-                    work[wbase + r * 9u + col * 3u + row] -= acc;
-                }
-            }
+        for (var p = p0 + lid; p < p1; p += FWG) {
+            let q = wbase + row_idx[p] * 9u;
+            let m = l_block(p) * z;
+            work[q] -= m[0].x;
+            work[q + 1u] -= m[0].y;
+            work[q + 2u] -= m[0].z;
+            work[q + 3u] -= m[1].x;
+            work[q + 4u] -= m[1].y;
+            work[q + 5u] -= m[1].z;
+            work[q + 6u] -= m[2].x;
+            work[q + 7u] -= m[2].y;
+            work[q + 8u] -= m[2].z;
         }
         storageBarrier();
         workgroupBarrier();
@@ -172,6 +157,19 @@ fn sub_work_block(q: u32, m: mat3x3<f32>) {
     f_work[q + 6u] -= m[2].x;
     f_work[q + 7u] -= m[2].y;
     f_work[q + 8u] -= m[2].z;
+}
+
+// zout's block at o (column-major) = z.
+fn store_z(o: u32, z: mat3x3<f32>) {
+    zout[o] = z[0].x;
+    zout[o + 1u] = z[0].y;
+    zout[o + 2u] = z[0].z;
+    zout[o + 3u] = z[1].x;
+    zout[o + 4u] = z[1].y;
+    zout[o + 5u] = z[1].z;
+    zout[o + 6u] = z[2].x;
+    zout[o + 7u] = z[2].y;
+    zout[o + 8u] = z[2].z;
 }
 
 // Block p of L (column-major), as a matrix.
@@ -254,16 +252,7 @@ fn forward_shared(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocati
                 unit_lower_solve(w[2], d),
             );
             s_zm = z;
-            let o = (c * params.stride + t) * 9u;
-            zout[o] = z[0].x;
-            zout[o + 1u] = z[0].y;
-            zout[o + 2u] = z[0].z;
-            zout[o + 3u] = z[1].x;
-            zout[o + 4u] = z[1].y;
-            zout[o + 5u] = z[1].z;
-            zout[o + 6u] = z[2].x;
-            zout[o + 7u] = z[2].y;
-            zout[o + 8u] = z[2].z;
+            store_z((c * params.stride + t) * 9u, z);
             if (ok0) {
                 q = path_pos(len, r0) * 9u;
             }

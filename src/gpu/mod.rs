@@ -168,7 +168,7 @@ pub enum ForwardWalk {
 }
 
 // `forward_shared`'s workgroup memory (three `u32` and nine `f32` per path
-// node, `s_len` and `s_z` beside them) within WebGPU's minimum limit, and
+// node, `s_len` and `s_zm` beside them) within WebGPU's minimum limit, and
 // `forward_pieces`' (the same per path node, `s_len`, nine `f32` per piece
 // node and `p_info`).
 const _: () = assert!(SHARED_FORWARD_MAX_PATH * 4 * (3 + 9) + 4 + 36 <= 16_384);
