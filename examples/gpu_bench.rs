@@ -62,6 +62,59 @@ enum Walk {
     Global,
 }
 
+/// The GPU builder's counters before a row's builds.
+struct Counters {
+    wait: f64,
+    built: u64,
+    paths: u64,
+    depth: u64,
+    span: f64,
+    kernels: [f64; 3],
+    timed: u64,
+}
+
+impl Counters {
+    fn of(gpu: &GpuCompliance) -> Self {
+        Self {
+            wait: gpu.wait_seconds,
+            built: gpu.built,
+            paths: gpu.path_sum,
+            depth: gpu.depth_sum,
+            span: gpu.span_seconds,
+            kernels: gpu.kernel_seconds,
+            timed: gpu.timed,
+        }
+    }
+
+    /// Prints a row: `label`, the CPU and GPU build times (ms; no CPU time
+    /// and ratio for back-to-back rows), then per GPU build since `self`
+    /// the device wait, path, depth and, where the device has timestamps,
+    /// its busy span and kernel times.
+    fn print_row(&self, gpu: &GpuCompliance, label: &str, cpu: Option<f64>, g: f64) {
+        let builds = (gpu.built - self.built).max(1);
+        let wait = (gpu.wait_seconds - self.wait) * 1e3 / builds as f64;
+        let (c, ratio) = match cpu {
+            Some(c) => (format!("{c:.3}"), format!("{:.2}", g / c)),
+            None => ("-".into(), "-".into()),
+        };
+        print!(
+            "{label:>8} {c:>14} {g:>10.3} {ratio:>10} {wait:>10.3} {:>10} {:>10}",
+            (gpu.path_sum - self.paths) / builds,
+            (gpu.depth_sum - self.depth) / builds
+        );
+        // The device's own timing of the same builds, where it has timestamps.
+        let timed = (gpu.timed - self.timed) as f64;
+        if timed > 0.0 {
+            let per = |now: f64, then: f64| (now - then) * 1e3 / timed;
+            print!(" {:>10.3}", per(gpu.span_seconds, self.span));
+            for (now, then) in gpu.kernel_seconds.iter().zip(self.kernels) {
+                print!(" {:>10.3}", per(*now, then));
+            }
+        }
+        println!();
+    }
+}
+
 fn median(mut v: Vec<f64>) -> f64 {
     v.sort_by(f64::total_cmp);
     v[v.len() / 2]
@@ -137,9 +190,7 @@ fn main() -> bevy_soft_tissue::error::Result<()> {
     for n in [30, 60, 90, 130, 260] {
         let cs = pole_contacts(&body, n, v3(0.0, 0.0, -1.0), 0.3);
         let (mut cpu_t, mut gpu_t) = (Vec::new(), Vec::new());
-        let (wait0, builds0, paths0) = (gpu.wait_seconds, gpu.built, gpu.path_sum);
-        let (span0, kernels0, timed0) = (gpu.span_seconds, gpu.kernel_seconds, gpu.timed);
-        let depth0 = gpu.depth_sum;
+        let before = Counters::of(&gpu);
         for _ in 0..5 {
             // A new solver each time: no cached columns, W from the body's current factor.
             let build = |body: &mut DeformableBody,
@@ -162,30 +213,9 @@ fn main() -> bevy_soft_tissue::error::Result<()> {
             std::thread::sleep(std::time::Duration::from_millis(idle_ms));
             gpu_t.push(build(&mut body, Some(&mut gpu))?);
         }
-        let (c, g) = (median(cpu_t), median(gpu_t));
-        // Mean time the stepping thread waited for the device per GPU build.
-        let builds = (gpu.built - builds0).max(1);
-        let wait = (gpu.wait_seconds - wait0) * 1e3 / builds as f64;
-        print!(
-            "{n:>8} {c:>14.3} {g:>10.3} {:>10.2} {wait:>10.3} {:>10} {:>10}",
-            g / c,
-            (gpu.path_sum - paths0) / builds,
-            (gpu.depth_sum - depth0) / builds
-        );
-        // The device's own timing of the same builds, where it has timestamps.
-        let timed = (gpu.timed - timed0) as f64;
-        if timed > 0.0 {
-            let per = |now: f64, then: f64| (now - then) * 1e3 / timed;
-            print!(" {:>10.3}", per(gpu.span_seconds, span0));
-            for (now, then) in gpu.kernel_seconds.iter().zip(kernels0) {
-                print!(" {:>10.3}", per(*now, then));
-            }
-        }
-        println!();
+        before.print_row(&gpu, &n.to_string(), Some(median(cpu_t)), median(gpu_t));
         if args.back_to_back > 0 {
-            let (wait0, builds0, paths0) = (gpu.wait_seconds, gpu.built, gpu.path_sum);
-            let (span0, kernels0, timed0) = (gpu.span_seconds, gpu.kernel_seconds, gpu.timed);
-            let depth0 = gpu.depth_sum;
+            let before = Counters::of(&gpu);
             let mut s = ContactSolver::new(ContactSettings {
                 factor_reuse: 0,
                 ..Default::default()
@@ -196,32 +226,19 @@ fn main() -> bevy_soft_tissue::error::Result<()> {
                 s.build_compliance(&mut [&mut body], PassKind::First, Some(&mut gpu))?;
             }
             let g = t0.elapsed().as_secs_f64() * 1e3 / args.back_to_back as f64;
-            let builds = (gpu.built - builds0).max(1);
-            let wait = (gpu.wait_seconds - wait0) * 1e3 / builds as f64;
-            print!(
-                "{:>8} {:>14} {g:>10.3} {:>10} {wait:>10.3} {:>10} {:>10}",
-                format!("{n} b2b"),
-                "-",
-                "-",
-                (gpu.path_sum - paths0) / builds,
-                (gpu.depth_sum - depth0) / builds
-            );
-            let timed = (gpu.timed - timed0) as f64;
-            if timed > 0.0 {
-                let per = |now: f64, then: f64| (now - then) * 1e3 / timed;
-                print!(" {:>10.3}", per(gpu.span_seconds, span0));
-                for (now, then) in gpu.kernel_seconds.iter().zip(kernels0) {
-                    print!(" {:>10.3}", per(*now, then));
-                }
-            }
-            println!();
+            before.print_row(&gpu, &format!("{n} b2b"), None, g);
         }
     }
     if gpu.uploads > 0 {
         println!(
-            "factor uploads: {}, {:.3} ms each on the host (the pieces' inverses included)",
+            "factor uploads: {}, {:.3} ms each on the host{}",
             gpu.uploads,
-            gpu.upload_seconds * 1e3 / gpu.uploads as f64
+            gpu.upload_seconds * 1e3 / gpu.uploads as f64,
+            if gpu.forward_walk == ForwardWalk::Pieces {
+                " (the pieces' inverses included)"
+            } else {
+                ""
+            }
         );
     }
     Ok(())

@@ -184,9 +184,10 @@ fn l_block(p: u32) -> mat3x3<f32> {
 
 var<workgroup> s_zm: mat3x3<f32>;
 
-@compute @workgroup_size(FWG)
-fn forward_shared(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) lid: u32) {
-    let c = wid.x;
+// Loads contact c's path into workgroup memory for the walks there: its
+// nodes, their column ranges, and the right-hand side (the unit columns at
+// the path's first node). Returns the path's length.
+fn load_path(c: u32, lid: u32) -> u32 {
     let pbase = c * params.stride;
     if (lid == 0u) {
         s_len = min(paths[pbase], MAXP);
@@ -198,11 +199,17 @@ fn forward_shared(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocati
         f_cp0[t] = col_ptr[j];
         f_cp1[t] = col_ptr[j + 1u];
         for (var i = 0u; i < 9u; i++) {
-            // The unit columns at the path's first node.
             f_work[t * 9u + i] = select(0.0, 1.0, t == 0u && i % 4u == 0u);
         }
     }
     workgroupBarrier();
+    return len;
+}
+
+@compute @workgroup_size(FWG)
+fn forward_shared(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) lid: u32) {
+    let c = wid.x;
+    let len = load_path(c, lid);
     // Level 0's entry of this invocation and diagonal block.
     var nr = 0u;
     var nl = mat3x3<f32>();
@@ -301,22 +308,7 @@ var<workgroup> p_z: array<f32, 144>;
 @compute @workgroup_size(FWG)
 fn forward_pieces(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) lid: u32) {
     let c = wid.x;
-    let pbase = c * params.stride;
-    if (lid == 0u) {
-        s_len = min(paths[pbase], MAXP);
-    }
-    let len = workgroupUniformLoad(&s_len);
-    for (var t = lid; t < len; t += FWG) {
-        let j = paths[pbase + 1u + t];
-        f_path[t] = j;
-        f_cp0[t] = col_ptr[j];
-        f_cp1[t] = col_ptr[j + 1u];
-        for (var i = 0u; i < 9u; i++) {
-            // The unit columns at the path's first node.
-            f_work[t * 9u + i] = select(0.0, 1.0, t == 0u && i % 4u == 0u);
-        }
-    }
-    workgroupBarrier();
+    let len = load_path(c, lid);
     var t = 0u;
     loop {
         if (t >= len) {
