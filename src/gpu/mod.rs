@@ -420,10 +420,9 @@ pub struct GpuCompliance {
     /// [`SHARED_FORWARD_MAX_PATH`] nodes walk in global memory whatever it says).
     pub forward_walk: ForwardWalk,
     /// The most nodes in a piece for [`ForwardWalk::Pieces`], 1 to
-    /// [`MAX_PIECE_NODES`] (the default): a larger piece
-    /// means fewer steps and
-    /// a larger inverse to write with each factor (`q³/6` operations on the
-    /// host for `q = 3 ×` nodes).
+    /// [`MAX_PIECE_NODES`] (the default): a larger piece means fewer steps
+    /// and a larger inverse to write with each factor (`q³/6` operations on
+    /// the host for `q = 3 ×` nodes).
     pub piece_nodes: usize,
     /// Builds whose forward solves ran in workgroup memory (either walk).
     pub shared_forwards: u64,
@@ -767,7 +766,11 @@ impl GpuCompliance {
         };
         let depth = if walk == ForwardWalk::Pieces {
             self.upload_pieces(body_id, factor)?;
-            let table = &self.factors[&body_id].piece_table;
+            let table = &self
+                .factors
+                .get(&body_id)
+                .ok_or(SoftTissueError::Gpu("factor not uploaded".into()))?
+                .piece_table;
             let st = &self.step;
             // A step per piece entered: at a path's first node or a piece's first.
             st.path_offsets
@@ -930,7 +933,6 @@ impl GpuCompliance {
         ];
         let (forward, bg_forward) = match (walk, work) {
             (ForwardWalk::Pieces, _) => {
-                let up = &self.factors[&body_id];
                 let entries = [
                     e(0, params),
                     e(1, col_ptr),
