@@ -43,6 +43,8 @@ const WG: u32 = 64u;
 const FWG: u32 = 256u;
 
 var<workgroup> s_len: u32;
+// The global walk's solved diagonal block, shared by the workgroup.
+var<workgroup> s_z: mat3x3<f32>;
 
 @compute @workgroup_size(FWG)
 fn forward(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) lid: u32) {
@@ -73,12 +75,12 @@ fn forward(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_inde
                 unit_lower_solve(vec3<f32>(work[q + 3u], work[q + 4u], work[q + 5u]), d),
                 unit_lower_solve(vec3<f32>(work[q + 6u], work[q + 7u], work[q + 8u]), d),
             );
-            s_zm = z;
+            s_z = z;
             store_z((c * params.stride + t) * 9u, z);
         }
         workgroupBarrier();
         // work_r -= L_rj z_j for the rows of column j (distinct rows: no conflicts).
-        let z = s_zm;
+        let z = s_z;
         let p0 = col_ptr[j];
         let p1 = col_ptr[j + 1u];
         for (var p = p0 + lid; p < p1; p += FWG) {
@@ -106,7 +108,7 @@ fn forward(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_inde
 // path. The path's column ranges are read once up front, and each level's
 // column entries and diagonal block are loaded one level ahead, so a level
 // waits on workgroup memory and barriers rather than on global loads.
-// Workgroup memory: MAXP × 48 bytes + 40 (15 400 bytes, under WebGPU's
+// Workgroup memory: MAXP × 48 bytes + 4 (15 364 bytes, under WebGPU's
 // 16 384 minimum limit); `forward_pieces` adds MAXPIECE × 36 + 16 bytes
 // (15 956 in all).
 const MAXP: u32 = 320u;
@@ -182,8 +184,6 @@ fn l_block(p: u32) -> mat3x3<f32> {
     );
 }
 
-var<workgroup> s_zm: mat3x3<f32>;
-
 // Loads contact c's path into workgroup memory for the walks there: its
 // nodes, their column ranges, and the right-hand side (the unit columns at
 // the path's first node). Returns the path's length.
@@ -222,10 +222,8 @@ fn forward_shared(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocati
             nr = row_idx[p];
             nl = l_block(p);
         }
-        if (lid == 0u) {
-            let j = f_path[0];
-            nd = vec3<f32>(ldiag[j * 3u], ldiag[j * 3u + 1u], ldiag[j * 3u + 2u]);
-        }
+        let j = f_path[0];
+        nd = vec3<f32>(ldiag[j * 3u], ldiag[j * 3u + 1u], ldiag[j * 3u + 2u]);
     }
     for (var t = 0u; t < len; t++) {
         let r0 = nr;
@@ -240,36 +238,24 @@ fn forward_shared(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocati
                 nr = row_idx[p];
                 nl = l_block(p);
             }
-            if (lid == 0u) {
-                let j = f_path[t + 1u];
-                nd = vec3<f32>(ldiag[j * 3u], ldiag[j * 3u + 1u], ldiag[j * 3u + 2u]);
-            }
+            let j = f_path[t + 1u];
+            nd = vec3<f32>(ldiag[j * 3u], ldiag[j * 3u + 1u], ldiag[j * 3u + 2u]);
         }
-        // Where this invocation's row sits on the path: found while the
-        // first invocation solves the diagonal block (by it after).
-        var q = 0u;
-        if (ok0 && lid != 0u) {
-            q = path_pos(len, r0) * 9u;
-        }
+        // z_j = L_jj⁻¹ work_j, solved by every invocation: work_j is final
+        // (this level writes only rows below j), so a level needs one barrier.
+        let w = work_block(t * 9u);
+        let z = mat3x3<f32>(
+            unit_lower_solve(w[0], d),
+            unit_lower_solve(w[1], d),
+            unit_lower_solve(w[2], d),
+        );
         if (lid == 0u) {
-            let w = work_block(t * 9u);
-            let z = mat3x3<f32>(
-                unit_lower_solve(w[0], d),
-                unit_lower_solve(w[1], d),
-                unit_lower_solve(w[2], d),
-            );
-            s_zm = z;
             store_z((c * params.stride + t) * 9u, z);
-            if (ok0) {
-                q = path_pos(len, r0) * 9u;
-            }
         }
-        workgroupBarrier();
         // work_r -= L_rj z_j for the rows of column j (distinct rows: no conflicts):
         // the first FWG entries from the loads above, any further ones directly.
-        let z = s_zm;
         if (ok0) {
-            sub_work_block(q, l0 * z);
+            sub_work_block(path_pos(len, r0) * 9u, l0 * z);
         }
         for (var p = f_cp0[t] + FWG + lid; p < f_cp1[t]; p += FWG) {
             sub_work_block(path_pos(len, row_idx[p]) * 9u, l_block(p) * z);

@@ -35,11 +35,13 @@
 //! and [`GpuCompliance::span_seconds`] give the device's own time of each
 //! kernel (one compute pass per kernel, a timestamp at each pass's start and
 //! end, read back behind `W`). On an NVIDIA H200 a build of the 1 183-node
-//! lens waits 0.6–1.1 ms for 30–260 contacts, about half of it the forward
-//! kernel: a walk of up to 273 levels (the longest path). The kernels do
-//! their 3×3 block arithmetic on WGSL's `mat3x3` values: with the blocks in
-//! arrays indexed in loops the forward and Gram kernels ran two to three
-//! times slower (the arrays likely left registers for local memory). The
+//! lens waits 0.5–1.0 ms for 30–260 contacts, about half of it the forward
+//! kernel: a walk of up to 273 levels (the longest path), one barrier a
+//! level (every invocation solves the level's diagonal block itself). The
+//! kernels do their 3×3 block arithmetic on WGSL's `mat3x3` values: with
+//! the blocks in arrays indexed in loops the forward and Gram kernels ran
+//! two to three times slower (the arrays likely left registers for local
+//! memory). The
 //! driver lowers the clocks under the scene's light, steady load (see
 //! [`GpuMode`](crate::plugin::GpuMode)), and the kernels then take two to
 //! four times longer.
@@ -144,13 +146,13 @@ pub const MAX_PIECE_NODES: usize = 16;
 /// [`SHARED_FORWARD_MAX_PATH`] nodes always take [`ForwardWalk::Global`]).
 ///
 /// On an NVIDIA H200 (`gpu_bench`, the 1 183-node lens, one factor for every
-/// build, 30–260 contacts) the forward kernel took 0.34–0.40 ms by nodes and
+/// build, 30–260 contacts) the forward kernel took 0.24–0.30 ms by nodes and
 /// 0.16–0.19 ms by pieces, but writing a new factor cost the stepping thread
 /// 0.33–0.36 ms by nodes and 0.94–1.15 ms by pieces (their inverses). In
 /// the cataract scene nearly every build brings a new factor, so nodes is
-/// the default; pieces pays where a factor serves five builds or more (a
-/// `Periodic` preconditioner, or `W` built from scratch several times per
-/// factor).
+/// the default; pieces pays where a factor serves about ten builds or more
+/// (a `Periodic` preconditioner, or `W` built from scratch several times
+/// per factor).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum ForwardWalk {
     /// In workgroup memory, one step per node (the default).
@@ -168,10 +170,10 @@ pub enum ForwardWalk {
 }
 
 // `forward_shared`'s workgroup memory (three `u32` and nine `f32` per path
-// node, `s_len` and `s_zm` beside them) within WebGPU's minimum limit, and
+// node, `s_len` beside them) within WebGPU's minimum limit, and
 // `forward_pieces`' (the same per path node, `s_len`, nine `f32` per piece
 // node and `p_info`).
-const _: () = assert!(SHARED_FORWARD_MAX_PATH * 4 * (3 + 9) + 4 + 36 <= 16_384);
+const _: () = assert!(SHARED_FORWARD_MAX_PATH * 4 * (3 + 9) + 4 <= 16_384);
 const _: () =
     assert!(SHARED_FORWARD_MAX_PATH * 4 * (3 + 9) + 4 + MAX_PIECE_NODES * 36 + 16 <= 16_384);
 

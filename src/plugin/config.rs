@@ -10,8 +10,8 @@ use crate::contact::ContactSettings;
 /// The GPU path needs the `gpu` feature and a render device (`RenderPlugin`);
 /// otherwise every mode builds on the CPU.
 ///
-/// On an NVIDIA H200 the GPU build of one body's `W` took 0.8–5.4 ms for
-/// 30–260 contacts on the 1 183-node lens, of which 0.6–1.1 ms is spent
+/// On an NVIDIA H200 the GPU build of one body's `W` took 0.7–5.4 ms for
+/// 30–260 contacts on the 1 183-node lens, of which 0.5–1.0 ms is spent
 /// waiting for the device (the rest is the host's share, which grows with
 /// the contact count). A CPU build without cached columns took 2.1–48 ms
 /// there, so where `W` is built from scratch each step (`factor_reuse: 0`)
@@ -22,9 +22,10 @@ use crate::contact::ContactSettings;
 /// took 4.6 ms at the median step on the GPU against 1.4–3.0 on the CPU):
 /// keep `Off` there. Under the scene's light, steady load (the device busy
 /// 20–40 % of the time) the driver lowers the SM clock from 1 980 to
-/// 345–600 MHz within 15 seconds, and the forward kernel then takes about
+/// 345–600 MHz within 15 seconds, and the forward kernel then took about
 /// 1.5 ms a build against 0.34–0.40 ms in `gpu_bench`, which keeps the clock
-/// up. The README's Benchmarks section has the numbers and the commands.
+/// up (0.24–0.30 ms there since). The README's Benchmarks section has the
+/// numbers and the commands.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Reflect)]
 pub enum GpuMode {
     /// Always on the CPU.
