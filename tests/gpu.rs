@@ -58,6 +58,25 @@ fn relative_difference(a: &[f64], b: &[f64]) -> f64 {
     diff / scale
 }
 
+/// Builds the body's `W` on the GPU with `solver` (contacts set) and checks
+/// it against the CPU's `(wc, m)`: same size, `max |ΔW| / max |W| ≤ 1e-4`.
+fn assert_gpu_w_matches(
+    solver: &mut ContactSolver,
+    body: &mut DeformableBody,
+    gpu: &mut GpuCompliance,
+    (wc, m): (&[f64], usize),
+    label: &str,
+) {
+    solver
+        .build_compliance(&mut [body], PassKind::First, Some(gpu))
+        .unwrap();
+    let (wg, m2) = solver.delassus();
+    assert_eq!(m, m2, "{label}");
+    let rel = relative_difference(wc, wg);
+    println!("{label}: max |ΔW| / max |W| = {rel:.2e}");
+    assert!(rel <= 1e-4, "{label}: relative difference {rel:e}");
+}
+
 #[test]
 fn gpu_w_matches_cpu_w_on_lens_with_90_friction_contacts() {
     let Some(app) = render_app(|_| {}) else {
@@ -95,18 +114,11 @@ fn gpu_w_matches_cpu_w_on_lens_with_90_friction_contacts() {
     let mut gpu = GpuCompliance::new(device, queue, 0);
     let mut on_gpu = ContactSolver::new(ContactSettings::default()).unwrap();
     on_gpu.set_contacts(&contacts, &[&body], 0.02).unwrap();
-    on_gpu
-        .build_compliance(&mut [&mut body], PassKind::First, Some(&mut gpu))
-        .unwrap();
-    let (wg, m2) = on_gpu.delassus();
-    assert_eq!(m, m2);
+    assert_gpu_w_matches(&mut on_gpu, &mut body, &mut gpu, (wc, m), "GPU vs CPU W");
     assert!(gpu.dispatches >= 3 && gpu.built == 1, "{gpu:?}");
     // The lens's paths fit the walk in workgroup memory, by nodes.
     assert_eq!((gpu.shared_forwards, gpu.piece_forwards), (1, 0), "{gpu:?}");
     assert_eq!(gpu.depth_sum, gpu.path_sum, "{gpu:?}");
-    let rel = relative_difference(wc, wg);
-    println!("GPU vs CPU W: max |ΔW| / max |W| = {rel:.2e}");
-    assert!(rel <= 1e-4, "relative difference {rel:e}");
     // The other walks (in global memory, used for paths too long for
     // workgroup memory; by pieces of supernodes, of several sizes) give the
     // same W; by pieces, the deepest path takes fewer steps than it has nodes.
@@ -120,9 +132,8 @@ fn gpu_w_matches_cpu_w_on_lens_with_90_friction_contacts() {
         let before = (gpu.built, gpu.shared_forwards, gpu.piece_forwards);
         let (depth0, path0) = (gpu.depth_sum, gpu.path_sum);
         (gpu.forward_walk, gpu.piece_nodes) = (walk, piece_nodes);
-        on_gpu
-            .build_compliance(&mut [&mut body], PassKind::First, Some(&mut gpu))
-            .unwrap();
+        let label = format!("{walk:?} walk, pieces of {piece_nodes}");
+        assert_gpu_w_matches(&mut on_gpu, &mut body, &mut gpu, (wc, m), &label);
         let pieces = u64::from(walk == ForwardWalk::Pieces);
         let shared = u64::from(walk != ForwardWalk::Global);
         assert_eq!(
@@ -134,13 +145,6 @@ fn gpu_w_matches_cpu_w_on_lens_with_90_friction_contacts() {
             let (depth, path) = (gpu.depth_sum - depth0, gpu.path_sum - path0);
             assert!(depth < path, "{depth} steps for {path} nodes: {gpu:?}");
         }
-        let (wg, _) = on_gpu.delassus();
-        let rel = relative_difference(wc, wg);
-        println!("{walk:?} walk, pieces of {piece_nodes}: max |ΔW| / max |W| = {rel:.2e}");
-        assert!(
-            rel <= 1e-4,
-            "{walk:?} walk, pieces of {piece_nodes}: {rel:e}"
-        );
     }
     gpu.forward_walk = ForwardWalk::Nodes;
     // A second build with the same factor reuses the uploaded factor.
@@ -163,27 +167,24 @@ fn gpu_w_matches_cpu_w_on_lens_with_90_friction_contacts() {
     cpu.build_compliance(&mut [&mut body], PassKind::First, None)
         .unwrap();
     on_gpu.set_contacts(&contacts, &[&body], 0.01).unwrap();
-    on_gpu
-        .build_compliance(&mut [&mut body], PassKind::First, Some(&mut gpu))
-        .unwrap();
-    assert_eq!(gpu.uploads, 2);
-    let ((wc, m), (wg, m2)) = (cpu.delassus(), on_gpu.delassus());
-    assert_eq!(m, m2);
-    let rel = relative_difference(wc, wg);
-    println!("after a new factor: max |ΔW| / max |W| = {rel:.2e}");
-    assert!(
-        rel <= 1e-4,
-        "relative difference {rel:e} after a new factor"
+    let cpu_w = cpu.delassus();
+    assert_gpu_w_matches(
+        &mut on_gpu,
+        &mut body,
+        &mut gpu,
+        cpu_w,
+        "after a new factor",
     );
+    assert_eq!(gpu.uploads, 2);
     // By pieces too: their inverses follow the new factor.
     gpu.forward_walk = ForwardWalk::Pieces;
-    on_gpu
-        .build_compliance(&mut [&mut body], PassKind::First, Some(&mut gpu))
-        .unwrap();
-    let (wg, _) = on_gpu.delassus();
-    let rel = relative_difference(wc, wg);
-    println!("after a new factor, by pieces: max |ΔW| / max |W| = {rel:.2e}");
-    assert!(rel <= 1e-4, "by pieces after a new factor: {rel:e}");
+    assert_gpu_w_matches(
+        &mut on_gpu,
+        &mut body,
+        &mut gpu,
+        cpu_w,
+        "after a new factor, by pieces",
+    );
     assert!(gpu.wait_seconds > 0.0 && gpu.compute_seconds >= gpu.wait_seconds);
     // The device's timestamps: every build timed, the forward solves took
     // time, and the device's busy span lies inside the host's wait.
