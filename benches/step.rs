@@ -110,6 +110,16 @@ fn bench_backward(c: &mut Criterion) {
             f.backward_single(&mut y)
         })
     });
+    c.bench_function("lens_forward_single", |b| {
+        b.iter(|| {
+            y.copy_from_slice(&y0);
+            f.forward_single(&mut y)
+        })
+    });
+    let (mut x1, mut t1) = (y0.clone(), y0.clone());
+    c.bench_function("lens_solve_single", |b| {
+        b.iter(|| f.solve_single(&y0, &mut x1, &mut t1))
+    });
     let b6: Vec<[Vec3; 6]> = (0..n)
         .map(|i| std::array::from_fn(|c| v3(1.0, -0.5 * c as f64, 0.25 * i as f64)))
         .collect();

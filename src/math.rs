@@ -283,24 +283,18 @@ pub(crate) mod x86 {
         _mm256_fmadd_pd(c[2], _mm256_set1_pd(x.z), acc)
     }
 
-    /// The three columns of a column-major 3×3 block of `f32` at `p`,
-    /// widened to `f64`, each in lanes 0–2 with lane 3 zero.
-    ///
-    /// # Safety
-    /// `p..p + 10` must be readable (the last column's four-lane load reads
-    /// one entry past the block).
+    /// The sums of the four lanes of each of `v`, as a vector.
     #[inline]
     #[target_feature(enable = "avx2,fma")]
-    pub(crate) unsafe fn columns_f32(p: *const f32) -> [__m256d; 3] {
-        let zero = _mm256_setzero_pd();
-        // SAFETY: the caller guarantees ten readable entries.
-        unsafe {
-            [
-                _mm256_blend_pd(_mm256_cvtps_pd(_mm_loadu_ps(p)), zero, 0b1000),
-                _mm256_blend_pd(_mm256_cvtps_pd(_mm_loadu_ps(p.add(3))), zero, 0b1000),
-                _mm256_blend_pd(_mm256_cvtps_pd(_mm_loadu_ps(p.add(6))), zero, 0b1000),
-            ]
-        }
+    pub(crate) fn sums3(v: [__m256d; 3]) -> Vec3 {
+        // [a0+a1, b0+b1, a2+a3, b2+b3] and [c0+c1, c0+c1, c2+c3, c2+c3].
+        let ab = _mm256_hadd_pd(v[0], v[1]);
+        let cc = _mm256_hadd_pd(v[2], v[2]);
+        let lo = _mm256_permute2f128_pd(ab, cc, 0x20);
+        let hi = _mm256_permute2f128_pd(ab, cc, 0x31);
+        let mut out = Vec3::zeros();
+        store3(&mut out, _mm256_add_pd(lo, hi));
+        out
     }
 
     /// The sum of the four lanes.

@@ -88,6 +88,10 @@ pub struct LdltSymbolic {
     a_diag: Vec<usize>,
     /// The supernodal kernel's analysis, when it factorizes.
     supernodal: Option<Arc<SupernodalPlan>>,
+    /// Whether column `j`'s rows are `j + 1` followed by the rows of column
+    /// `j + 1` (the two are one supernode): the sweeps then take the two
+    /// columns together, reading and writing each shared row once.
+    joins_next: Vec<bool>,
 }
 
 /// Numeric values of an `LDLᵀ` factorization (see [`LdltSymbolic`]).
@@ -210,6 +214,14 @@ impl LdltSymbolic {
             .then(|| SupernodalPlan::new(pattern, &perm, &col_ptr, &row_idx))
             .flatten()
             .map(Arc::new);
+        let joins_next = (0..n)
+            .map(|j| {
+                let rows = &row_idx[col_ptr[j]..col_ptr[j + 1]];
+                j + 1 < n
+                    && rows.first() == Some(&(j + 1))
+                    && rows[1..] == row_idx[col_ptr[j + 1]..col_ptr[j + 2]]
+            })
+            .collect();
         Ok(Self {
             n,
             perm,
@@ -224,6 +236,7 @@ impl LdltSymbolic {
             a_entries,
             a_diag,
             supernodal,
+            joins_next,
         })
     }
 
@@ -234,6 +247,13 @@ impl LdltSymbolic {
         } else {
             FactorKernel::Blocked
         }
+    }
+
+    /// How many columns the sweeps take together with the next one (see
+    /// [`LdltFactor::forward`]): those whose rows are the next column and its
+    /// rows.
+    pub fn joined_columns(&self) -> usize {
+        self.joins_next.iter().filter(|&&b| b).count()
     }
 
     /// Number of 3×3 blocks in the strictly lower part of `L`.
@@ -351,6 +371,16 @@ impl LdltFactor {
         }
     }
 
+    /// [`Self::forward`] with the single-precision copy of `L` when there is
+    /// one (see [`Self::backward_single`]).
+    pub fn forward_single(&self, y: &mut [Vec3]) {
+        if self.has_single() {
+            self.forward_with::<true>(y);
+        } else {
+            self.forward_with::<false>(y);
+        }
+    }
+
     /// [`Self::forward`] with `L` in double (`SINGLE = false`) or single
     /// precision (`l32`, which must hold the copy).
     fn forward_with<const SINGLE: bool>(&self, y: &mut [Vec3]) {
@@ -383,8 +413,9 @@ impl LdltFactor {
         }
     }
 
-    /// The three columns of block `p` of `L` (lanes 0–2, lane 3 zero), from
-    /// `l` or from its single-precision copy.
+    /// The three columns of block `p` of `L` in lanes 0–2, from `l` (lane 3
+    /// zero) or from its single-precision copy (lane 3 the next entry of
+    /// `l32`: the kernels never let lane 3 reach a result).
     ///
     /// # Safety
     /// With `SINGLE`, `l32` must hold `9 (p + 1) + 3` entries or more
@@ -396,11 +427,19 @@ impl LdltFactor {
         &self,
         p: usize,
     ) -> [std::arch::x86_64::__m256d; 3] {
+        use std::arch::x86_64::*;
         if SINGLE {
             // SAFETY: the caller guarantees the entries the three four-lane
             // loads read, 9p..9p + 10 (the last one is the next block's, or
             // padding).
-            unsafe { x86::columns_f32(self.l32.as_ptr().add(9 * p)) }
+            unsafe {
+                let q = self.l32.as_ptr().add(9 * p);
+                [
+                    _mm256_cvtps_pd(_mm_loadu_ps(q)),
+                    _mm256_cvtps_pd(_mm_loadu_ps(q.add(3))),
+                    _mm256_cvtps_pd(_mm_loadu_ps(q.add(6))),
+                ]
+            }
         } else {
             x86::columns(&self.l[p])
         }
@@ -431,30 +470,93 @@ impl LdltFactor {
 
     /// [`Self::forward`] with AVX2 and FMA: `y_r -= L_p y_j` as three fused
     /// multiply-adds of `L_p`'s columns with broadcast entries of `y_j`.
+    /// Two columns of one supernode (`joins_next`) go together: each shared
+    /// row is read and written once for both. Lane 3 of every product is
+    /// never stored, so the single-precision columns are used as loaded
+    /// (their lane 3 is the next entry of `l32`) and `y_r` is read with one
+    /// four-lane load where a node follows it.
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2,fma")]
     fn forward_avx2<const SINGLE: bool>(&self, y: &mut [Vec3]) {
         use std::arch::x86_64::*;
         let s = &*self.symbolic;
         self.check_single::<SINGLE>();
-        for j in 0..s.n {
-            let yj = unit_lower_solve(&self.ldiag[j], &y[j]);
-            y[j] = yj;
-            let b = [
-                _mm256_set1_pd(yj.x),
-                _mm256_set1_pd(yj.y),
-                _mm256_set1_pd(yj.z),
-            ];
-            let range = s.col_ptr[j]..s.col_ptr[j + 1];
-            for (p, &r) in range.clone().zip(&s.row_idx[range]) {
-                // SAFETY: checked before the loop (`p` is a block of `L`).
-                let lc = unsafe { self.block_columns::<SINGLE>(p) };
-                let mut acc = x86::load3(&y[r]);
-                for k in 0..3 {
-                    acc = _mm256_fnmadd_pd(lc[k], b[k], acc);
-                }
-                x86::store3(&mut y[r], acc);
+        let n = s.n;
+        assert!(y.len() >= n, "forward: one entry per node");
+        let yp = y.as_mut_ptr().cast::<f64>();
+        let splat = |v: Vec3| {
+            [
+                _mm256_set1_pd(v.x),
+                _mm256_set1_pd(v.y),
+                _mm256_set1_pd(v.z),
+            ]
+        };
+        // `y_r` in lanes 0–2; lane 3 is whatever follows.
+        // SAFETY (callers): `r < n`; the four-lane load reads the first entry
+        // of `y[r + 1]`, which exists when `r + 1 < n`.
+        let load = |r: usize| unsafe {
+            if r + 1 < n {
+                _mm256_loadu_pd(yp.add(3 * r))
+            } else {
+                x86::load3_ptr(yp.add(3 * r))
             }
+        };
+        let mut j = 0;
+        while j < n {
+            // SAFETY: `j < n`.
+            let yj = unit_lower_solve(&self.ldiag[j], unsafe { &*yp.add(3 * j).cast::<Vec3>() });
+            // SAFETY: as above.
+            unsafe { x86::store3_ptr(yp.add(3 * j), x86::load3(&yj)) };
+            let b = splat(yj);
+            let (start, end) = (s.col_ptr[j], s.col_ptr[j + 1]);
+            if s.joins_next[j] {
+                // Column `j`'s first block is row `j + 1`; its other rows are
+                // column `j + 1`'s.
+                let (start1, end1) = (s.col_ptr[j + 1], s.col_ptr[j + 2]);
+                // SAFETY: blocks of `L` (checked before the loop); rows are
+                // nodes.
+                unsafe {
+                    let lc = self.block_columns::<SINGLE>(start);
+                    let mut acc = load(j + 1);
+                    for k in 0..3 {
+                        acc = _mm256_fnmadd_pd(lc[k], b[k], acc);
+                    }
+                    let mut y1 = Vec3::zeros();
+                    x86::store3(&mut y1, acc);
+                    let y1 = unit_lower_solve(&self.ldiag[j + 1], &y1);
+                    x86::store3_ptr(yp.add(3 * (j + 1)), x86::load3(&y1));
+                    let b1 = splat(y1);
+                    for (t, &r) in s.row_idx[start1..end1].iter().enumerate() {
+                        let la = self.block_columns::<SINGLE>(start + 1 + t);
+                        let lb = self.block_columns::<SINGLE>(start1 + t);
+                        // Two chains of three, not one of six.
+                        let mut acc = load(r);
+                        let mut p = _mm256_mul_pd(lb[0], b1[0]);
+                        for k in 0..3 {
+                            acc = _mm256_fnmadd_pd(la[k], b[k], acc);
+                        }
+                        for k in 1..3 {
+                            p = _mm256_fmadd_pd(lb[k], b1[k], p);
+                        }
+                        x86::store3_ptr(yp.add(3 * r), _mm256_sub_pd(acc, p));
+                    }
+                }
+                j += 2;
+                continue;
+            }
+            for (p, &r) in (start..end).zip(&s.row_idx[start..end]) {
+                // SAFETY: checked before the loop (`p` is a block of `L`);
+                // `r` is a node.
+                unsafe {
+                    let lc = self.block_columns::<SINGLE>(p);
+                    let mut acc = load(r);
+                    for k in 0..3 {
+                        acc = _mm256_fnmadd_pd(lc[k], b[k], acc);
+                    }
+                    x86::store3_ptr(yp.add(3 * r), acc);
+                }
+            }
+            j += 1;
         }
     }
 
@@ -471,50 +573,118 @@ impl LdltFactor {
 
     /// [`Self::backward`] with AVX2 and FMA: `L_pᵀ y_r` is three dot products;
     /// each column of `L_p` accumulates `L_p[:, k] ⊙ y_r` in its own vector over
-    /// the whole column of `L`, and the three are summed once per node. Even and
-    /// odd blocks accumulate into separate vectors, so consecutive fused
-    /// multiply-adds do not wait on each other's latency.
+    /// the whole column of `L`, and the three are summed once per node. Two
+    /// columns of one supernode (`joins_next`) go together, each shared row
+    /// read once for both; a lone column splits its blocks over two sets of
+    /// vectors, so consecutive fused multiply-adds do not wait on each
+    /// other's latency. The blocks are taken from the last row up: the nodes
+    /// just solved come last, so a column's sums start before the node above
+    /// it is done. Lane 3 of the sums is set to zero once per node, so the
+    /// blocks and `y_r` are used as loaded.
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2,fma")]
     fn backward_avx2<const SINGLE: bool>(&self, y: &mut [Vec3]) {
         use std::arch::x86_64::*;
         let s = &*self.symbolic;
         self.check_single::<SINGLE>();
-        for j in (0..s.n).rev() {
-            let mut acc = [_mm256_setzero_pd(); 3];
-            let mut acc2 = [_mm256_setzero_pd(); 3];
+        let n = s.n;
+        assert!(y.len() >= n, "backward: one entry per node");
+        let yp = y.as_mut_ptr().cast::<f64>();
+        let zero = _mm256_setzero_pd();
+        // `y_j − Σ` with the sums' lane 3 dropped, solved with the diagonal
+        // block, into `y_j`.
+        // SAFETY (callers): `j < n`.
+        let finish = |j: usize, acc: [__m256d; 3]| unsafe {
+            let acc = acc.map(|a| _mm256_blend_pd(a, zero, 0b1000));
+            let yj = &mut *yp.add(3 * j).cast::<Vec3>();
+            let rhs = *yj - x86::sums3(acc);
+            *yj = unit_lower_t_solve(&self.ldiag[j], &rhs);
+        };
+        let mut j = n;
+        while j > 0 {
+            j -= 1;
+            if j > 0 && s.joins_next[j - 1] {
+                // Columns `j − 1` and `j`: the first block of `j − 1` is row
+                // `j`, its other rows are column `j`'s.
+                let i = j - 1;
+                let (start, end) = (s.col_ptr[j], s.col_ptr[j + 1]);
+                let start0 = s.col_ptr[i] + 1;
+                let mut acc0 = [zero; 3];
+                let mut acc1 = [zero; 3];
+                let mut len = end - start;
+                // SAFETY: blocks of `L` (checked before the loop); rows are
+                // nodes, and only the last node (the last row, if any) is
+                // read with a three-lane load.
+                unsafe {
+                    if len > 0 && s.row_idx[end - 1] + 1 == n {
+                        len -= 1;
+                        let v = x86::load3_ptr(yp.add(3 * (n - 1)));
+                        let la = self.block_columns::<SINGLE>(start0 + len);
+                        let lb = self.block_columns::<SINGLE>(start + len);
+                        for k in 0..3 {
+                            acc0[k] = _mm256_fmadd_pd(la[k], v, acc0[k]);
+                            acc1[k] = _mm256_fmadd_pd(lb[k], v, acc1[k]);
+                        }
+                    }
+                    for t in (0..len).rev() {
+                        let v = _mm256_loadu_pd(yp.add(3 * s.row_idx[start + t]));
+                        let la = self.block_columns::<SINGLE>(start0 + t);
+                        let lb = self.block_columns::<SINGLE>(start + t);
+                        for k in 0..3 {
+                            acc0[k] = _mm256_fmadd_pd(la[k], v, acc0[k]);
+                            acc1[k] = _mm256_fmadd_pd(lb[k], v, acc1[k]);
+                        }
+                    }
+                    finish(j, acc1);
+                    let v = x86::load3_ptr(yp.add(3 * j));
+                    let la = self.block_columns::<SINGLE>(start0 - 1);
+                    for k in 0..3 {
+                        acc0[k] = _mm256_fmadd_pd(la[k], v, acc0[k]);
+                    }
+                    finish(i, acc0);
+                }
+                j = i;
+                continue;
+            }
+            let mut acc = [zero; 3];
+            let mut acc2 = [zero; 3];
             let (start, end) = (s.col_ptr[j], s.col_ptr[j + 1]);
-            let rows = &s.row_idx[start..end];
-            let len = end - start;
-            for t in 0..len / 2 {
-                // SAFETY: checked before the loop (blocks of `L`).
-                let (la, lb) = unsafe {
-                    (
-                        self.block_columns::<SINGLE>(start + 2 * t),
-                        self.block_columns::<SINGLE>(start + 2 * t + 1),
-                    )
-                };
-                let va = x86::load3(&y[rows[2 * t]]);
-                let vb = x86::load3(&y[rows[2 * t + 1]]);
-                for k in 0..3 {
-                    acc[k] = _mm256_fmadd_pd(la[k], va, acc[k]);
-                    acc2[k] = _mm256_fmadd_pd(lb[k], vb, acc2[k]);
+            let mut len = end - start;
+            // SAFETY: as above.
+            unsafe {
+                if len > 0 && s.row_idx[end - 1] + 1 == n {
+                    len -= 1;
+                    let lc = self.block_columns::<SINGLE>(start + len);
+                    let v = x86::load3_ptr(yp.add(3 * (n - 1)));
+                    for k in 0..3 {
+                        acc[k] = _mm256_fmadd_pd(lc[k], v, acc[k]);
+                    }
                 }
-            }
-            if len % 2 == 1 {
-                // SAFETY: checked before the loop (a block of `L`).
-                let lc = unsafe { self.block_columns::<SINGLE>(end - 1) };
-                let v = x86::load3(&y[rows[len - 1]]);
-                for k in 0..3 {
-                    acc[k] = _mm256_fmadd_pd(lc[k], v, acc[k]);
+                let rows = &s.row_idx[start..start + len];
+                let mut t = len;
+                while t >= 2 {
+                    t -= 2;
+                    let la = self.block_columns::<SINGLE>(start + t + 1);
+                    let lb = self.block_columns::<SINGLE>(start + t);
+                    let va = _mm256_loadu_pd(yp.add(3 * rows[t + 1]));
+                    let vb = _mm256_loadu_pd(yp.add(3 * rows[t]));
+                    for k in 0..3 {
+                        acc[k] = _mm256_fmadd_pd(la[k], va, acc[k]);
+                        acc2[k] = _mm256_fmadd_pd(lb[k], vb, acc2[k]);
+                    }
                 }
+                if t == 1 {
+                    let lc = self.block_columns::<SINGLE>(start);
+                    let v = _mm256_loadu_pd(yp.add(3 * rows[0]));
+                    for k in 0..3 {
+                        acc[k] = _mm256_fmadd_pd(lc[k], v, acc[k]);
+                    }
+                }
+                for k in 0..3 {
+                    acc[k] = _mm256_add_pd(acc[k], acc2[k]);
+                }
+                finish(j, acc);
             }
-            for k in 0..3 {
-                acc[k] = _mm256_add_pd(acc[k], acc2[k]);
-            }
-            let dots = Vec3::new(x86::sum(acc[0]), x86::sum(acc[1]), x86::sum(acc[2]));
-            let rhs = y[j] - dots;
-            y[j] = unit_lower_t_solve(&self.ldiag[j], &rhs);
         }
     }
 
@@ -1034,6 +1204,10 @@ mod tests {
     #[test]
     fn solve_kernels_agree() {
         let (sym, f) = arbitrary_factor([2, 2, 4]);
+        // Both kinds of column are swept: those taken with the next one
+        // (a supernode's) and those taken alone.
+        let joined = sym.joined_columns();
+        assert!(joined > 0 && 2 * joined < sym.n, "{joined} of {}", sym.n);
         let y0: Vec<Vec3> = (0..sym.n)
             .map(|i| Vec3::new(val(3 * i + 1000), val(3 * i + 1001), val(3 * i + 1002)))
             .collect();
