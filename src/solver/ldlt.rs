@@ -860,7 +860,8 @@ impl LdltFactor {
         use std::arch::x86_64::*;
         let s = &*self.symbolic;
         let mut b = [[_mm256_setzero_pd(); 3]; K];
-        for j in 0..if FWD { s.n } else { 0 } {
+        let mut b1 = [[_mm256_setzero_pd(); 3]; K];
+        let solve_node = |y: &mut [[Vec3; K]], j: usize, b: &mut [[__m256d; 3]; K]| {
             let mut yj = y[j];
             for v in &mut yj {
                 *v = unit_lower_solve(&self.ldiag[j], v);
@@ -871,7 +872,45 @@ impl LdltFactor {
                     b[c][k] = _mm256_set1_pd(yj[c][k]);
                 }
             }
+        };
+        let mut j = 0;
+        while j < if FWD { s.n } else { 0 } {
+            solve_node(y, j, &mut b);
             let range = s.col_ptr[j]..s.col_ptr[j + 1];
+            if s.joins_next[j] {
+                // Two columns of a supernode (see `forward_avx2`): each
+                // shared row read and written once for both.
+                let lc = x86::columns(&self.l[range.start]);
+                let yr = &mut y[j + 1];
+                for c in 0..K {
+                    let mut acc = x86::load3(&yr[c]);
+                    for k in 0..3 {
+                        acc = _mm256_fnmadd_pd(lc[k], b[c][k], acc);
+                    }
+                    x86::store3(&mut yr[c], acc);
+                }
+                solve_node(y, j + 1, &mut b1);
+                let range1 = s.col_ptr[j + 1]..s.col_ptr[j + 2];
+                let pairs = self.l[range.start + 1..range.end]
+                    .iter()
+                    .zip(&self.l[range1.clone()]);
+                for ((la, lb), &r) in pairs.zip(&s.row_idx[range1]) {
+                    let (la, lb) = (x86::columns(la), x86::columns(lb));
+                    let yr = &mut y[r];
+                    for c in 0..K {
+                        let mut acc = x86::load3(&yr[c]);
+                        for k in 0..3 {
+                            acc = _mm256_fnmadd_pd(la[k], b[c][k], acc);
+                        }
+                        for k in 0..3 {
+                            acc = _mm256_fnmadd_pd(lb[k], b1[c][k], acc);
+                        }
+                        x86::store3(&mut yr[c], acc);
+                    }
+                }
+                j += 2;
+                continue;
+            }
             for (lp, &r) in self.l[range.clone()].iter().zip(&s.row_idx[range]) {
                 let lc = x86::columns(lp);
                 let yr = &mut y[r];
@@ -883,6 +922,7 @@ impl LdltFactor {
                     x86::store3(&mut yr[c], acc);
                 }
             }
+            j += 1;
         }
         if FWD && BWD {
             for (yk, d) in y.iter_mut().zip(&self.d) {
