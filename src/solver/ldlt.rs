@@ -18,7 +18,10 @@
 //!   instead, gathered into the same layout ([`FactorKernel`]; its dense
 //!   supernode kernels win on large meshes: 2.7× at 16 000 nodes).
 //! - **Solves**: full forward/diagonal/backward solves for the CG
-//!   preconditioner, and the reach-restricted forward solve of the three unit
+//!   preconditioner (with AVX2, two columns of one supernode are swept
+//!   together where the first one's rows are the second and its rows,
+//!   [`LdltSymbolic::joined_columns`], so each shared row of `y` is read and
+//!   written once for both), and the reach-restricted forward solve of the three unit
 //!   columns of one node ([`LdltFactor::node_forward_solve`]), whose nonzeros
 //!   lie only on the node's elimination-tree path to the root. This is what
 //!   the contact compliance is built from.
@@ -473,8 +476,11 @@ impl LdltFactor {
     /// Two columns of one supernode (`joins_next`) go together: each shared
     /// row is read and written once for both. Lane 3 of every product is
     /// never stored, so the single-precision columns are used as loaded
-    /// (their lane 3 is the next entry of `l32`) and `y_r` is read with one
-    /// four-lane load where a node follows it.
+    /// (their lane 3 is the next entry of `l32`). `y_r` is read as it is
+    /// written, sixteen bytes and eight: one four-lane load over two such
+    /// stores cannot take its data from the store buffer, and was slower
+    /// (`cargo bench --bench step -- lens_forward_single`: 120–123 against
+    /// 108–114 µs).
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2,fma")]
     fn forward_avx2<const SINGLE: bool>(&self, y: &mut [Vec3]) {
@@ -491,23 +497,14 @@ impl LdltFactor {
                 _mm256_set1_pd(v.z),
             ]
         };
-        // `y_r` in lanes 0–2; lane 3 is whatever follows.
-        // SAFETY (callers): `r < n`; the four-lane load reads the first entry
-        // of `y[r + 1]`, which exists when `r + 1 < n`.
-        let load = |r: usize| unsafe {
-            if r + 1 < n {
-                _mm256_loadu_pd(yp.add(3 * r))
-            } else {
-                x86::load3_ptr(yp.add(3 * r))
-            }
-        };
+        // SAFETY (callers): `r < n`, the length checked above.
+        let load = |r: usize| unsafe { x86::load3_ptr(yp.add(3 * r)) };
         let mut j = 0;
         while j < n {
             // SAFETY: `j < n`.
-            let yj = unit_lower_solve(&self.ldiag[j], unsafe { &*yp.add(3 * j).cast::<Vec3>() });
-            // SAFETY: as above.
-            unsafe { x86::store3_ptr(yp.add(3 * j), x86::load3(&yj)) };
-            let b = splat(yj);
+            let yj = unsafe { &mut *yp.add(3 * j).cast::<Vec3>() };
+            *yj = unit_lower_solve(&self.ldiag[j], yj);
+            let b = splat(*yj);
             let (start, end) = (s.col_ptr[j], s.col_ptr[j + 1]);
             if s.joins_next[j] {
                 // Column `j`'s first block is row `j + 1`; its other rows are
@@ -579,8 +576,9 @@ impl LdltFactor {
     /// vectors, so consecutive fused multiply-adds do not wait on each
     /// other's latency. The blocks are taken from the last row up: the nodes
     /// just solved come last, so a column's sums start before the node above
-    /// it is done. Lane 3 of the sums is set to zero once per node, so the
-    /// blocks and `y_r` are used as loaded.
+    /// it is done. `y_r` is read with lane 3 zero (and as it is written, see
+    /// [`Self::forward_avx2`]), so the blocks are used as loaded; lane 3 of
+    /// the sums is set to zero once per node all the same.
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2,fma")]
     fn backward_avx2<const SINGLE: bool>(&self, y: &mut [Vec3]) {
@@ -611,23 +609,11 @@ impl LdltFactor {
                 let start0 = s.col_ptr[i] + 1;
                 let mut acc0 = [zero; 3];
                 let mut acc1 = [zero; 3];
-                let mut len = end - start;
                 // SAFETY: blocks of `L` (checked before the loop); rows are
-                // nodes, and only the last node (the last row, if any) is
-                // read with a three-lane load.
+                // nodes.
                 unsafe {
-                    if len > 0 && s.row_idx[end - 1] + 1 == n {
-                        len -= 1;
-                        let v = x86::load3_ptr(yp.add(3 * (n - 1)));
-                        let la = self.block_columns::<SINGLE>(start0 + len);
-                        let lb = self.block_columns::<SINGLE>(start + len);
-                        for k in 0..3 {
-                            acc0[k] = _mm256_fmadd_pd(la[k], v, acc0[k]);
-                            acc1[k] = _mm256_fmadd_pd(lb[k], v, acc1[k]);
-                        }
-                    }
-                    for t in (0..len).rev() {
-                        let v = _mm256_loadu_pd(yp.add(3 * s.row_idx[start + t]));
+                    for t in (0..end - start).rev() {
+                        let v = x86::load3_ptr(yp.add(3 * s.row_idx[start + t]));
                         let la = self.block_columns::<SINGLE>(start0 + t);
                         let lb = self.block_columns::<SINGLE>(start + t);
                         for k in 0..3 {
@@ -649,25 +635,17 @@ impl LdltFactor {
             let mut acc = [zero; 3];
             let mut acc2 = [zero; 3];
             let (start, end) = (s.col_ptr[j], s.col_ptr[j + 1]);
-            let mut len = end - start;
+            let len = end - start;
             // SAFETY: as above.
             unsafe {
-                if len > 0 && s.row_idx[end - 1] + 1 == n {
-                    len -= 1;
-                    let lc = self.block_columns::<SINGLE>(start + len);
-                    let v = x86::load3_ptr(yp.add(3 * (n - 1)));
-                    for k in 0..3 {
-                        acc[k] = _mm256_fmadd_pd(lc[k], v, acc[k]);
-                    }
-                }
-                let rows = &s.row_idx[start..start + len];
+                let rows = &s.row_idx[start..end];
                 let mut t = len;
                 while t >= 2 {
                     t -= 2;
                     let la = self.block_columns::<SINGLE>(start + t + 1);
                     let lb = self.block_columns::<SINGLE>(start + t);
-                    let va = _mm256_loadu_pd(yp.add(3 * rows[t + 1]));
-                    let vb = _mm256_loadu_pd(yp.add(3 * rows[t]));
+                    let va = x86::load3_ptr(yp.add(3 * rows[t + 1]));
+                    let vb = x86::load3_ptr(yp.add(3 * rows[t]));
                     for k in 0..3 {
                         acc[k] = _mm256_fmadd_pd(la[k], va, acc[k]);
                         acc2[k] = _mm256_fmadd_pd(lb[k], vb, acc2[k]);
@@ -675,7 +653,7 @@ impl LdltFactor {
                 }
                 if t == 1 {
                     let lc = self.block_columns::<SINGLE>(start);
-                    let v = _mm256_loadu_pd(yp.add(3 * rows[0]));
+                    let v = x86::load3_ptr(yp.add(3 * rows[0]));
                     for k in 0..3 {
                         acc[k] = _mm256_fmadd_pd(lc[k], v, acc[k]);
                     }
