@@ -1226,6 +1226,9 @@ mod tests {
         // (a supernode's) and those taken alone.
         let joined = sym.joined_columns();
         assert!(joined > 0 && 2 * joined < sym.n, "{joined} of {}", sym.n);
+        // ... the root's column among them (the pair whose second column
+        // has no rows).
+        assert!(sym.joins_next[sym.n - 2]);
         let y0: Vec<Vec3> = (0..sym.n)
             .map(|i| Vec3::new(val(3 * i + 1000), val(3 * i + 1001), val(3 * i + 1002)))
             .collect();
