@@ -1,7 +1,7 @@
 //! One implicit step of the paper-size lens (1183 nodes, 5184 tets, nucleus 5× stiffer)
 //! for each preconditioner, while the lens is squeezed and twisted.
 //!
-//! Run: `cargo bench --bench step` (`-- lens_assemble` for the assembly alone, `-- factorize` for one numeric factorization at three resolutions with each kernel, `-- lens_round_to_single` for its single-precision copy, `-- lens_backward` for one backward sweep with the factor, `-- lens_solve_many6` for six right-hand sides at once (`-- lens_forward_many6` their forward half), `-- lens_w` for `W` of a jam-sized contact set).
+//! Run: `cargo bench --bench step` (`-- lens_assemble` for the assembly alone, `-- factorize` for one numeric factorization at three resolutions with each kernel, `-- lens_round_to_single` for its single-precision copy, `-- lens_backward` for one backward sweep with the factor, `-- lens_forward_single` for one forward sweep and `-- lens_solve_single` for one preconditioner solve with its single-precision copy, `-- lens_solve_many6` for six right-hand sides at once (`-- lens_forward_many6` their forward half), `-- lens_w` for `W` of a jam-sized contact set).
 
 use bevy_soft_tissue::core_prelude::*;
 use bevy_soft_tissue::mesh::generate::LENS_RADII;
