@@ -219,22 +219,18 @@ struct UploadedFactor {
 
 /// Splits the elimination tree's chains into pieces for
 /// [`ForwardWalk::Pieces`]: node `j` continues the piece of `j − 1` when
-/// `j − 1`'s parent is `j`, the structure of column `j − 1` below `j` is
-/// that of column `j` (one entry more), and the piece has fewer than
-/// `max_nodes` nodes. Writes three entries per node into `table` (the
+/// column `j − 1`'s rows are `j` and then column `j`'s
+/// ([`LdltSymbolic::joins_next`]) and the piece has fewer than `max_nodes`
+/// nodes. Writes three entries per node into `table` (the
 /// piece's first node, its last node, the offset of its inverse, `q²`
 /// entries for `q = 3 ×` nodes) and returns the inverses' total length.
 fn piece_table(s: &LdltSymbolic, max_nodes: usize, table: &mut Vec<u32>) -> usize {
     let n = s.n;
-    let count = |j: usize| s.col_ptr[j + 1] - s.col_ptr[j];
     table.clear();
     table.resize(3 * n, 0);
     let (mut start, mut offset) = (0, 0);
     for j in 0..n {
-        let continues = j + 1 < n
-            && s.parent[j] == j + 1
-            && count(j) == count(j + 1) + 1
-            && j + 1 - start < max_nodes.max(1);
+        let continues = s.joins_next(j) && j + 1 - start < max_nodes.max(1);
         if !continues {
             let q = 3 * (j + 1 - start);
             for t in &mut table[3 * start..3 * (j + 1)].chunks_exact_mut(3) {
@@ -1131,10 +1127,9 @@ mod tests {
                 let (a, b) = (table[3 * j] as usize, table[3 * j + 1] as usize);
                 assert!(a <= j && j <= b && b - a < max_nodes);
                 widest = widest.max(b - a + 1);
-                let rows = |c: usize| &s.row_idx[s.col_ptr[c]..s.col_ptr[c + 1]];
                 let own: Vec<usize> = (j + 1..=b).collect();
-                assert_eq!(&rows(j)[..b - j], &own[..]);
-                assert_eq!(&rows(j)[b - j..], rows(b));
+                assert_eq!(&rows_of(s, j)[..b - j], &own[..]);
+                assert_eq!(&rows_of(s, j)[b - j..], rows_of(s, b));
             }
             if max_nodes > 1 {
                 assert!(widest > 1, "no piece of more than one node");

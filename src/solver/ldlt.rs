@@ -252,6 +252,12 @@ impl LdltSymbolic {
         }
     }
 
+    /// Whether column `j`'s rows are `j + 1` followed by column `j + 1`'s
+    /// rows (the two are one supernode, `j + 1` the parent of `j`).
+    pub fn joins_next(&self, j: usize) -> bool {
+        self.joins_next[j]
+    }
+
     /// How many columns the sweeps take together with the next one (see
     /// [`LdltFactor::forward`]): those whose rows are the next column and its
     /// rows.
@@ -518,24 +524,21 @@ impl LdltFactor {
                     for k in 0..3 {
                         acc = _mm256_fnmadd_pd(lc[k], b[k], acc);
                     }
-                    let mut y1 = Vec3::zeros();
-                    x86::store3(&mut y1, acc);
-                    let y1 = unit_lower_solve(&self.ldiag[j + 1], &y1);
-                    x86::store3_ptr(yp.add(3 * (j + 1)), x86::load3(&y1));
-                    let b1 = splat(y1);
+                    x86::store3_ptr(yp.add(3 * (j + 1)), acc);
+                    let y1 = &mut *yp.add(3 * (j + 1)).cast::<Vec3>();
+                    *y1 = unit_lower_solve(&self.ldiag[j + 1], y1);
+                    let b1 = splat(*y1);
                     for (t, &r) in s.row_idx[start1..end1].iter().enumerate() {
                         let la = self.block_columns::<SINGLE>(start + 1 + t);
                         let lb = self.block_columns::<SINGLE>(start1 + t);
-                        // Two chains of three, not one of six.
                         let mut acc = load(r);
-                        let mut p = _mm256_mul_pd(lb[0], b1[0]);
                         for k in 0..3 {
                             acc = _mm256_fnmadd_pd(la[k], b[k], acc);
                         }
-                        for k in 1..3 {
-                            p = _mm256_fmadd_pd(lb[k], b1[k], p);
+                        for k in 0..3 {
+                            acc = _mm256_fnmadd_pd(lb[k], b1[k], acc);
                         }
-                        x86::store3_ptr(yp.add(3 * r), _mm256_sub_pd(acc, p));
+                        x86::store3_ptr(yp.add(3 * r), acc);
                     }
                 }
                 j += 2;
