@@ -13,7 +13,9 @@
 //!   (`--no-default-features`) and can be used and tested on its own.
 //! - **The Bevy plugin** (feature `bevy`, on by default) — `plugin`: a thin ECS
 //!   layer over the core. `SoftTissuePlugins` (a plugin group) is the entry;
-//!   its systems run in the chained `SoftTissueSystems` sets and call the
+//!   its systems run in the chained `SoftTissueSystems` sets of the
+//!   pipeline's own schedule (`SoftTissueSchedule`, run from
+//!   `FixedPostUpdate`) and call the
 //!   same phase functions as [`scene::Scene::step`] ([`scene::phases`]). The
 //!   cataract scene as a plugin (`scenes::CataractScenePlugin`), the `.msh` /
 //!   TetGen asset loader (`plugin::assets`) and, with the `gpu` feature, the
@@ -62,7 +64,7 @@ pub mod solver;
 pub mod study;
 
 #[cfg(feature = "bevy")]
-pub use plugin::{SoftTissuePlugins, SoftTissueSystems};
+pub use plugin::{SoftTissuePlugins, SoftTissueSchedule, SoftTissueSystems};
 
 /// The most used items, for Bevy apps: import it next to `bevy::prelude::*`
 /// (it exports no names that clash with Bevy's prelude; the core's `f64`
@@ -83,8 +85,8 @@ pub mod prelude {
         BodyContacts, ComplianceOverride, FailedPhase, FixedNodes, GpuMode, HapticTool,
         HapticsPlugin, HapticsStatus, PreconditionerOverride, SoftBody, SoftBodyError,
         SoftBodyFailed, SoftBodyFromAsset, SoftTissueConfig, SoftTissueContacts,
-        SoftTissueDiagnostics, SoftTissuePlugins, SoftTissueSystems, TetMeshAsset, Tool,
-        ToolReaction,
+        SoftTissueDiagnostics, SoftTissuePlugins, SoftTissueSchedule, SoftTissueSystems,
+        TetMeshAsset, Tool, ToolReaction,
     };
     pub use crate::scene::Scene;
     pub use crate::solver::PreconditionerKind;

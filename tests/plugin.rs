@@ -13,7 +13,7 @@ use bevy_soft_tissue::plugin::{
     SoftBody, SoftTissueConfig, SoftTissueDiagnostics, Tool, ToolReaction,
 };
 use bevy_soft_tissue::prelude::{BodyContacts, v3};
-use bevy_soft_tissue::{SoftTissuePlugins, SoftTissueSystems};
+use bevy_soft_tissue::{SoftTissuePlugins, SoftTissueSchedule, SoftTissueSystems};
 
 #[path = "../examples/common/mod.rs"]
 mod common;
@@ -116,6 +116,54 @@ fn body_falls_onto_fixed_tool_and_stays_above_it() {
         .and_then(|d| d.value())
         .unwrap();
     assert!(step > 0.0);
+    // The step's wall clock covers every phase's timer.
+    assert!(
+        d.pipeline_ms >= d.step_ms() && d.step_ms() > 0.0,
+        "pipeline {} ms, phases {} ms",
+        d.pipeline_ms,
+        d.step_ms()
+    );
+}
+
+/// By default the sets run in the pipeline's own schedule, which
+/// `FixedPostUpdate` runs; given another schedule they run there directly.
+/// Either way bodies step, and the step's wall clock covers its phases.
+#[test]
+fn the_pipeline_runs_in_its_own_schedule_or_the_one_given() {
+    for own in [true, false] {
+        let plugins = if own {
+            SoftTissuePlugins::default()
+        } else {
+            SoftTissuePlugins::new(FixedPostUpdate)
+        };
+        let mut app = App::new();
+        app.add_plugins((
+            MinimalPlugins,
+            plugins.with_config(SoftTissueConfig {
+                timestep: H,
+                gravity: Some(bevy::math::DVec3::new(0.0, 0.0, -9.81)),
+                ..Default::default()
+            }),
+        ))
+        .insert_resource(TimeUpdateStrategy::ManualDuration(Duration::from_secs_f64(
+            H,
+        )));
+        let body = app.world_mut().spawn(cube(4e-3, 2, 0.0)).id();
+        steps(&mut app, 5);
+        let w = app.world();
+        assert_eq!(
+            w.resource::<Schedules>().contains(SoftTissueSchedule),
+            own,
+            "own schedule: {own}"
+        );
+        let z = w.get::<SoftBody>(body).unwrap().positions()[0].z;
+        assert!(
+            z < -1e-5,
+            "own schedule: {own}: the body did not fall ({z})"
+        );
+        let d = w.resource::<SoftTissueDiagnostics>();
+        assert!(d.pipeline_ms >= d.step_ms() && d.step_ms() > 0.0);
+    }
 }
 
 #[test]
@@ -262,7 +310,7 @@ fn user_systems_move_tools_before_detection() {
         }
     });
     app.add_systems(
-        FixedPostUpdate,
+        SoftTissueSchedule,
         (|q: Query<&Tool>, mut seen: ResMut<Seen>| {
             for t in &q {
                 seen.0.push(t.pose().translation.vector.x as f32);
@@ -714,7 +762,7 @@ fn a_body_removed_mid_pipeline_is_reported_not_stale() {
         ..Default::default()
     });
     app.add_systems(
-        FixedPostUpdate,
+        SoftTissueSchedule,
         despawn_mid_step
             .after(SoftTissueSystems::Compliance)
             .before(SoftTissueSystems::Lcp),

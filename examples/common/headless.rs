@@ -14,15 +14,33 @@ use bevy_soft_tissue::plugin::{
 use bevy_soft_tissue::scenes::cataract::{self, CataractParams};
 use bevy_soft_tissue::scenes::{CataractScenePlugin, Lens};
 
+/// The columns of [`HeadlessSummary::median_ms`] and its kin.
+pub const PHASES: [&str; 10] = [
+    "assemble",
+    "factorize",
+    "free motion",
+    "detect",
+    "compliance",
+    "lcp",
+    "correct",
+    "rescue",
+    "step",
+    "pipeline",
+];
+/// Index of the pipeline's wall clock in [`PHASES`].
+const PIPELINE: usize = 9;
+
 /// Summary of a headless run.
 #[derive(Debug, Clone, Default)]
 pub struct HeadlessSummary {
     /// Steps run.
     pub steps: usize,
-    /// Median milliseconds per phase: assemble, factorize, free motion, detect,
-    /// compliance, LCP, correct, whole step.
-    pub median_ms: [f64; 8],
-    /// Steps per second from the median step time.
+    /// Median milliseconds per phase ([`PHASES`]): assemble, factorize, free
+    /// motion, detect, compliance, LCP, correct, consistency rescues, their
+    /// sum (`SoftTissueDiagnostics::step_ms`), and the wall clock of the
+    /// whole pipeline (`SoftTissueDiagnostics::pipeline_ms`).
+    pub median_ms: [f64; 10],
+    /// Steps per second from the median wall-clock step (the pipeline's).
     pub steps_per_second: f64,
     /// Median and maximum contacts per step.
     pub contacts: (usize, usize),
@@ -41,13 +59,14 @@ pub struct HeadlessSummary {
     /// Largest speed of the lens's centre of mass (mean node velocity) seen, m/s:
     /// a stability check, as the vectis itself moves at about 1 mm/s.
     pub max_lens_speed: f64,
-    /// Median step time over the steps with 50–90 contacts, if any.
-    pub median_ms_50_90: Option<f64>,
+    /// Median wall-clock step time (the pipeline's) over the steps with 50–90
+    /// contacts, and the median of the phases' sum there, if any.
+    pub median_ms_50_90: Option<(f64, f64)>,
     /// Mean milliseconds per phase (same order as [`Self::median_ms`]) over the
     /// steps with 50–90 contacts: where the time of those steps goes.
-    pub mean_ms_50_90: [f64; 8],
+    pub mean_ms_50_90: [f64; 10],
     /// Mean milliseconds per phase over the jam steps (more than 90 contacts).
-    pub mean_ms_jam: [f64; 8],
+    pub mean_ms_jam: [f64; 10],
     /// Mean contact passes per jam step.
     pub passes_jam: f64,
     /// Mean contacts per jam step (runs whose jams differ compare by it).
@@ -61,8 +80,8 @@ pub struct HeadlessSummary {
     /// Mean LCP sweeps and contact passes per step over the steps with 50–90 contacts.
     pub lcp_50_90: (f64, f64),
     /// Steps with more than 90 contacts (the lens jammed in the slit), and their
-    /// median step time in ms, if any.
-    pub jam: (usize, Option<f64>),
+    /// median wall-clock step time and median phases' sum in ms, if any.
+    pub jam: (usize, Option<(f64, f64)>),
     /// The most contact passes a step ran, and how many steps ran more than
     /// eight (see [`bevy_soft_tissue::contact::ContactSettings::max_passes`]).
     pub max_passes: (usize, usize),
@@ -137,16 +156,20 @@ pub fn run_headless(
     body: BodySettings,
     steps: usize,
 ) -> Result<HeadlessSummary> {
-    run_headless_recording(params, config, body, steps, None)
+    run_headless_recording(params, config, body, steps, None, false)
 }
 
-/// [`run_headless`], writing the first-pass contact problems as `recording` says.
+/// [`run_headless`], writing the first-pass contact problems as `recording`
+/// says; `in_fixed_post_update`: the pipeline's sets straight in
+/// `FixedPostUpdate` (`SoftTissuePlugins::new(FixedPostUpdate)`, Bevy's
+/// multi-threaded executor) instead of their own schedule.
 pub fn run_headless_recording(
     params: &CataractParams,
     config: SoftTissueConfig,
     body: BodySettings,
     steps: usize,
     recording: Option<&Recording>,
+    in_fixed_post_update: bool,
 ) -> Result<HeadlessSummary> {
     let h = config.timestep;
     let mut app = App::new();
@@ -163,7 +186,12 @@ pub fn run_headless_recording(
     } else {
         app.add_plugins(MinimalPlugins);
     }
-    app.add_plugins(SoftTissuePlugins::default().with_config(config))
+    let plugins = if in_fixed_post_update {
+        SoftTissuePlugins::new(FixedPostUpdate)
+    } else {
+        SoftTissuePlugins::default()
+    };
+    app.add_plugins(plugins.with_config(config))
         .add_plugins(CataractScenePlugin {
             params: params.clone(),
             body,
@@ -208,13 +236,13 @@ pub fn run_headless_recording(
     // A detection pass of its own over each step's final positions: what the
     // pipeline left penetrating, tools and bodies alike.
     let mut checker = ContactSolver::new(cataract::contact_settings())?;
-    let mut jam = Vec::new();
+    let mut jam = (Vec::new(), Vec::new());
     let mut max_tissue: f64 = 0.0;
-    let mut phases: [Vec<f64>; 8] = Default::default();
+    let mut phases: [Vec<f64>; 10] = Default::default();
     let mut contacts = Vec::new();
-    let mut band = Vec::new();
-    let mut band_sum = [0.0f64; 8];
-    let mut jam_sum = [0.0f64; 8];
+    let mut band = (Vec::new(), Vec::new());
+    let mut band_sum = [0.0f64; 10];
+    let mut jam_sum = [0.0f64; 10];
     let mut jam_passes = 0usize;
     let mut jam_contacts = 0usize;
     let mut jam_columns = (0usize, 0usize);
@@ -256,7 +284,9 @@ pub fn run_headless_recording(
             d.compliance_ms,
             d.lcp_ms,
             d.correct_ms,
+            d.rescue_ms,
             d.step_ms(),
+            d.pipeline_ms,
         ];
         for (p, x) in phases.iter_mut().zip(v) {
             p.push(x);
@@ -264,7 +294,8 @@ pub fn run_headless_recording(
         contacts.push(d.contacts);
         lcp_sweeps.0 = lcp_sweeps.0.max(d.lcp_first_iterations);
         if d.contacts > 90 {
-            jam.push(d.step_ms());
+            jam.0.push(d.pipeline_ms);
+            jam.1.push(d.step_ms());
             lcp_sweeps.1 += d.lcp_first_iterations;
             jam_passes += d.contact_passes;
             jam_contacts += d.contacts;
@@ -286,7 +317,8 @@ pub fn run_headless_recording(
             recorded += 1;
         }
         if (50..=90).contains(&d.contacts) {
-            band.push(d.step_ms());
+            band.0.push(d.pipeline_ms);
+            band.1.push(d.step_ms());
             for (acc, x) in band_sum.iter_mut().zip(v) {
                 *acc += x;
             }
@@ -333,17 +365,18 @@ pub fn run_headless_recording(
         v.sort_by(f64::total_cmp);
         v[v.len() / 2]
     };
-    let mut median_ms = [0.0; 8];
+    let mut median_ms = [0.0; 10];
     for (m, p) in median_ms.iter_mut().zip(phases.iter_mut()) {
         *m = med(p);
     }
     let mut c = contacts;
     c.sort_unstable();
-    let band_steps = band.len().max(1) as f64;
+    let band_steps = band.0.len().max(1) as f64;
+    let jam_steps = jam.0.len().max(1) as f64;
     let summary = HeadlessSummary {
         steps,
         median_ms,
-        steps_per_second: 1e3 / median_ms[7],
+        steps_per_second: 1e3 / median_ms[PIPELINE],
         contacts: (
             c.get(c.len() / 2).copied().unwrap_or(0),
             c.last().copied().unwrap_or(0),
@@ -354,22 +387,25 @@ pub fn run_headless_recording(
         lens_center: (start, end),
         max_lens_speed,
         mean_ms_50_90: band_sum.map(|x| x / band_steps),
-        mean_ms_jam: jam_sum.map(|x| x / jam.len().max(1) as f64),
-        passes_jam: jam_passes as f64 / jam.len().max(1) as f64,
-        contacts_jam: jam_contacts as f64 / jam.len().max(1) as f64,
+        mean_ms_jam: jam_sum.map(|x| x / jam_steps),
+        passes_jam: jam_passes as f64 / jam_steps,
+        contacts_jam: jam_contacts as f64 / jam_steps,
         columns_jam: (
-            jam_columns.0 as f64 / jam.len().max(1) as f64,
-            jam_columns.1 as f64 / jam.len().max(1) as f64,
+            jam_columns.0 as f64 / jam_steps,
+            jam_columns.1 as f64 / jam_steps,
         ),
         cg_iterations_50_90: band_cg as f64 / band_steps,
         lcp_50_90: (
             band_lcp.0 as f64 / band_steps,
             band_lcp.1 as f64 / band_steps,
         ),
-        median_ms_50_90: (!band.is_empty()).then(|| med(&mut band)),
+        median_ms_50_90: (!band.0.is_empty()).then(|| (med(&mut band.0), med(&mut band.1))),
         max_tissue_penetration: max_tissue,
-        lcp_sweeps: (lcp_sweeps.0, lcp_sweeps.1 as f64 / jam.len().max(1) as f64),
-        jam: (jam.len(), (!jam.is_empty()).then(|| med(&mut jam))),
+        lcp_sweeps: (lcp_sweeps.0, lcp_sweeps.1 as f64 / jam_steps),
+        jam: (
+            jam.0.len(),
+            (!jam.0.is_empty()).then(|| (med(&mut jam.0), med(&mut jam.1))),
+        ),
         max_passes,
         lcp_capped: app.world().resource::<SoftTissueDiagnostics>().lcp_capped,
         consistency_refactors: app

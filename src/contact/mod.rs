@@ -600,6 +600,18 @@ impl ContactSolver {
         Ok(())
     }
 
+    /// A factor of the current matrix for each body in `self.stale`.
+    fn refactor_stale<B: BodiesMut + ?Sized>(&mut self, bodies: &mut B) -> Result<()> {
+        for i in 0..self.stale.len() {
+            let bi = self.stale[i];
+            if bodies.body_mut(bi).refactor_preconditioner_now()? {
+                self.compliance[bi].drop_snapshot();
+                self.report.consistency_refactors += 1;
+            }
+        }
+        Ok(())
+    }
+
     /// The rescue of [`Self::correct`]: the bodies in `self.stale` get a factor
     /// of their current matrix, and the pass's `W`, LCP and correction are
     /// redone (on the CPU) with it; the new correction is consistent by
@@ -609,13 +621,10 @@ impl ContactSolver {
         bodies: &mut B,
         pass: PassKind,
     ) -> Result<()> {
-        for i in 0..self.stale.len() {
-            let bi = self.stale[i];
-            if bodies.body_mut(bi).refactor_preconditioner_now()? {
-                self.compliance[bi].drop_snapshot();
-                self.report.consistency_refactors += 1;
-            }
-        }
+        let t0 = Instant::now();
+        let refactored = self.refactor_stale(bodies);
+        self.report.rescue += t0.elapsed().as_secs_f64();
+        refactored?;
         self.build_compliance(bodies, pass, None)?;
         self.solve_lcp(&*bodies, pass);
         let unchecked = correct::Tolerances {

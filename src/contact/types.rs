@@ -95,6 +95,11 @@ pub struct ContactReport {
     pub lcp_seconds: f64,
     /// Seconds in the correction.
     pub correct: f64,
+    /// Seconds the consistency rescues spent getting a factor of the step's
+    /// matrix (factorizing it on the stepping thread, or waiting for the
+    /// worker's), all passes. The rescue's rebuilt `W`, LCP and correction
+    /// count in `compliance`, `lcp_seconds` and `correct`.
+    pub rescue: f64,
     /// Vertex–tool pairs tested in detection.
     pub pairs_tested: usize,
     /// Contact passes run (see [`super::ContactSettings::max_passes`]).

@@ -27,7 +27,7 @@ impl Plugin for DeformationPlugin {
         app.add_systems(
             self.schedule,
             (
-                (apply_body_settings, assemble)
+                (begin_step, apply_body_settings, assemble)
                     .chain()
                     .in_set(SoftTissueSystems::Assemble),
                 factorize.in_set(SoftTissueSystems::Factorize),
@@ -35,6 +35,11 @@ impl Plugin for DeformationPlugin {
             ),
         );
     }
+}
+
+/// Starts the step's diagnostics (and its wall clock).
+fn begin_step(mut diag: ResMut<SoftTissueDiagnostics>) {
+    diag.begin_step();
 }
 
 /// Writes the config's scene-wide body settings (gravity, damping) and the
@@ -140,7 +145,6 @@ fn assemble(
     mut bodies: Query<Live, Without<SoftBodyFailed>>,
     mut f: Failures,
 ) {
-    f.diag.begin_step();
     for (e, mut body) in &mut bodies {
         let body = &mut body.0;
         if let Err(err) = phases::assemble(body, &contacts.solver, contacts.active, config.timestep)

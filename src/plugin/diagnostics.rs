@@ -6,7 +6,7 @@ use bevy::ecs::intern::Interned;
 use bevy::ecs::schedule::ScheduleLabel;
 use bevy::prelude::*;
 
-use super::sets::SoftTissueSystems;
+use bevy::platform::time::Instant;
 
 /// Numbers of the last step (times in ms) and counters of work done since start.
 ///
@@ -32,6 +32,20 @@ pub struct SoftTissueDiagnostics {
     pub lcp_ms: f64,
     /// Correction (all passes), ms.
     pub correct_ms: f64,
+    /// Consistency rescues: a factor of the step's matrix made on the
+    /// stepping thread or waited for
+    /// ([`crate::contact::ContactReport::rescue`]), ms.
+    pub rescue_ms: f64,
+    /// Wall-clock time of the whole step, ms: from the start of the
+    /// [`SoftTissueSystems::Assemble`](super::SoftTissueSystems::Assemble) set
+    /// to the end of the [`SoftTissueSystems::Sync`](super::SoftTissueSystems::Sync) set, every system of the pipeline and the
+    /// scheduling between them. [`Self::step_ms`] sums the phases' own
+    /// timers; the difference is what no phase times (settings, components,
+    /// the scheduler).
+    pub pipeline_ms: f64,
+    /// When this step's pipeline started.
+    #[reflect(ignore)]
+    started: Option<Instant>,
     /// CG iterations summed over bodies.
     pub cg_iterations: usize,
     /// Bodies whose CG did not converge.
@@ -93,6 +107,7 @@ pub struct SoftTissueDiagnostics {
 impl SoftTissueDiagnostics {
     /// Resets the per-step numbers (counters keep counting).
     pub fn begin_step(&mut self) {
+        self.started = Some(Instant::now());
         self.steps += 1;
         self.assemble_ms = 0.0;
         self.factorize_ms = 0.0;
@@ -101,6 +116,8 @@ impl SoftTissueDiagnostics {
         self.compliance_ms = 0.0;
         self.lcp_ms = 0.0;
         self.correct_ms = 0.0;
+        self.rescue_ms = 0.0;
+        self.pipeline_ms = 0.0;
         self.cg_iterations = 0;
         self.cg_unconverged = 0;
         self.factor_age = 0;
@@ -116,7 +133,8 @@ impl SoftTissueDiagnostics {
         self.gpu_wait_ms = 0.0;
     }
 
-    /// Total step time, ms.
+    /// Total step time, ms: the phases' timers summed (see also
+    /// [`Self::pipeline_ms`]).
     pub fn step_ms(&self) -> f64 {
         self.assemble_ms
             + self.factorize_ms
@@ -125,6 +143,14 @@ impl SoftTissueDiagnostics {
             + self.compliance_ms
             + self.lcp_ms
             + self.correct_ms
+            + self.rescue_ms
+    }
+
+    /// Ends the step's wall clock ([`Self::pipeline_ms`]).
+    fn end_step(&mut self) {
+        if let Some(t0) = self.started.take() {
+            self.pipeline_ms = t0.elapsed().as_secs_f64() * 1e3;
+        }
     }
 }
 
@@ -147,6 +173,10 @@ pub mod paths {
     pub const CORRECT: DiagnosticPath = DiagnosticPath::const_new("soft_tissue/correct_ms");
     /// Whole step, ms.
     pub const STEP: DiagnosticPath = DiagnosticPath::const_new("soft_tissue/step_ms");
+    /// Consistency rescues, ms.
+    pub const RESCUE: DiagnosticPath = DiagnosticPath::const_new("soft_tissue/rescue_ms");
+    /// The whole pipeline, wall clock, ms.
+    pub const PIPELINE: DiagnosticPath = DiagnosticPath::const_new("soft_tissue/pipeline_ms");
     /// CG iterations.
     pub const CG_ITERATIONS: DiagnosticPath =
         DiagnosticPath::const_new("soft_tissue/cg_iterations");
@@ -159,7 +189,7 @@ pub mod paths {
     /// Time the compliance waited for the GPU, ms.
     pub const GPU_WAIT: DiagnosticPath = DiagnosticPath::const_new("soft_tissue/gpu_wait_ms");
     /// All of them.
-    pub const ALL: [DiagnosticPath; 13] = [
+    pub const ALL: [DiagnosticPath; 15] = [
         ASSEMBLE,
         FACTORIZE,
         FREE_MOTION,
@@ -167,7 +197,9 @@ pub mod paths {
         COMPLIANCE,
         LCP,
         CORRECT,
+        RESCUE,
         STEP,
+        PIPELINE,
         CG_ITERATIONS,
         FACTOR_AGE,
         CONTACTS,
@@ -188,8 +220,14 @@ impl Plugin for SoftTissueDiagnosticsPlugin {
         for p in paths::ALL {
             app.register_diagnostic(Diagnostic::new(p).with_max_history_length(240));
         }
-        app.add_systems(self.schedule, publish.after(SoftTissueSystems::Sync));
+        app.add_systems(self.schedule, publish.after(end_step_clock));
     }
+}
+
+/// Stops the step's wall clock ([`SoftTissueDiagnostics::pipeline_ms`]),
+/// after every system of the pipeline.
+pub(super) fn end_step_clock(mut diag: ResMut<SoftTissueDiagnostics>) {
+    diag.end_step();
 }
 
 fn publish(diag: Res<SoftTissueDiagnostics>, mut store: Diagnostics) {
@@ -203,7 +241,9 @@ fn publish(diag: Res<SoftTissueDiagnostics>, mut store: Diagnostics) {
         (&COMPLIANCE, d.compliance_ms),
         (&LCP, d.lcp_ms),
         (&CORRECT, d.correct_ms),
+        (&RESCUE, d.rescue_ms),
         (&STEP, d.step_ms()),
+        (&PIPELINE, d.pipeline_ms),
         (&CG_ITERATIONS, d.cg_iterations as f64),
         (&FACTOR_AGE, d.factor_age as f64),
         (&CONTACTS, d.contacts as f64),

@@ -11,13 +11,14 @@
 
 use std::sync::Mutex;
 
-use bevy::app::{AppExit, FixedPostUpdate, Last};
+use bevy::app::{AppExit, Last};
 use bevy::diagnostic::{Diagnostic, DiagnosticPath, Diagnostics, RegisterDiagnostic};
 use bevy::ecs::intern::Interned;
 use bevy::ecs::schedule::ScheduleLabel;
 use bevy::prelude::*;
 
 use super::components::{SoftTissueContacts, Tool};
+use super::schedule::SoftTissueSchedule;
 use super::sets::SoftTissueSystems;
 use crate::contact::ToolContactProblem;
 use crate::haptics::{HapticDevice, HapticLoop, HapticSettings, HapticState};
@@ -72,13 +73,13 @@ pub struct HapticsPlugin {
 }
 
 impl HapticsPlugin {
-    /// The plugin for `device` with `settings`, in `FixedPostUpdate` (the
-    /// pipeline's default schedule).
+    /// The plugin for `device` with `settings`, in [`SoftTissueSchedule`]
+    /// (the pipeline's default schedule).
     pub fn new(device: impl HapticDevice, settings: HapticSettings) -> Self {
         Self {
             device: Mutex::new(Some(Box::new(device))),
             settings,
-            schedule: FixedPostUpdate.intern(),
+            schedule: SoftTissueSchedule.intern(),
         }
     }
 

@@ -43,9 +43,11 @@
 //!
 //! ## Pipeline
 //! Systems run in the chained sets of [`SoftTissueSystems`], in
-//! `FixedPostUpdate` unless another schedule is given
-//! ([`SoftTissuePlugins::new`]), so user systems in `FixedUpdate` move tools
-//! before detection. Each set calls the core's phase functions, the same ones
+//! [`SoftTissueSchedule`] unless another schedule is given
+//! ([`SoftTissuePlugins::new`]). That schedule runs once per fixed step
+//! from `FixedPostUpdate` (set [`SoftTissueStep`]), single-threaded (see
+//! its docs for why), so user systems in `FixedUpdate` move tools before
+//! detection. Each set calls the core's phase functions, the same ones
 //! [`crate::scene::Scene::step`] calls ([`crate::scene::phases`] and the
 //! [`crate::contact::ContactSolver`] phases):
 //!
@@ -80,7 +82,7 @@ mod sets;
 mod sync;
 mod views;
 
-use bevy::app::{FixedPostUpdate, PluginGroup, PluginGroupBuilder};
+use bevy::app::{PluginGroup, PluginGroupBuilder};
 use bevy::ecs::intern::Interned;
 use bevy::ecs::schedule::ScheduleLabel;
 
@@ -98,8 +100,8 @@ pub use diagnostics::{
     SoftTissueDiagnostics, SoftTissueDiagnosticsPlugin, paths as diagnostics_paths,
 };
 pub use haptics::{HapticTool, HapticsPlugin, HapticsStatus, haptic_paths};
-pub use schedule::SoftTissueSchedulePlugin;
-pub use sets::SoftTissueSystems;
+pub use schedule::{SoftTissueSchedule, SoftTissueSchedulePlugin};
+pub use sets::{SoftTissueStep, SoftTissueSystems};
 pub use sync::SyncPlugin;
 
 /// The soft-tissue plugins, one per concern (see the module docs): the entry
@@ -125,12 +127,14 @@ pub struct SoftTissuePlugins {
 
 impl Default for SoftTissuePlugins {
     fn default() -> Self {
-        Self::new(FixedPostUpdate)
+        Self::new(SoftTissueSchedule)
     }
 }
 
 impl SoftTissuePlugins {
-    /// Runs the pipeline in `schedule` (default `FixedPostUpdate`).
+    /// Runs the pipeline's sets in `schedule`: by default [`SoftTissueSchedule`],
+    /// the pipeline's own single-threaded schedule, which `FixedPostUpdate`
+    /// runs once per fixed step; any other schedule gets the sets directly.
     pub fn new(schedule: impl ScheduleLabel) -> Self {
         Self {
             schedule: schedule.intern(),

@@ -24,3 +24,9 @@ pub enum SoftTissueSystems {
     /// Components, diagnostics and render meshes.
     Sync,
 }
+
+/// The system in `FixedPostUpdate` that runs the pipeline's own schedule,
+/// [`SoftTissueSchedule`](super::SoftTissueSchedule) (the default): order
+/// `FixedPostUpdate` systems before or after the whole step with it.
+#[derive(SystemSet, Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub struct SoftTissueStep;

@@ -96,6 +96,7 @@ fn sync_components(
         diag.compliance_ms = report.compliance * 1e3;
         diag.lcp_ms = report.lcp_seconds * 1e3;
         diag.correct_ms = report.correct * 1e3;
+        diag.rescue_ms = report.rescue * 1e3;
         diag.contact_passes = report.passes;
         diag.compliance_solves = report.solves;
         diag.gram_blocks = report.gram_blocks;

@@ -430,6 +430,8 @@ fn a_correction_that_strays_from_the_matrix_refreshes_the_factor() {
             r.consistency_refactors
         );
         assert_eq!(p.rescues > rescues, refresh);
+        // The time the rescue spent on its factor is reported (and only then).
+        assert_eq!(r.rescue > 0.0, refresh, "rescue {} s", r.rescue);
         if refresh {
             assert_eq!(p.factor_age, 0, "the refreshed factor is of this step");
             // The redone pass is consistent: no penetration left.
