@@ -25,7 +25,8 @@
 //! `W` on the CPU, on the GPU, or on the GPU from N constraint rows; needs the
 //! `gpu` feature and a GPU adapter; headless it then prints the GPU builds,
 //! their time and the time spent waiting for the device);
-//! `--in-fixed-post-update` (headless: the pipeline's sets straight in
+//! `--repeats N` (headless: N runs, then the ranges and medians of their
+//! steps/s, deliveries and penetrations); `--in-fixed-post-update` (headless: the pipeline's sets straight in
 //! `FixedPostUpdate` under Bevy's multi-threaded executor, as before
 //! `SoftTissueSchedule`).
 //!
@@ -64,7 +65,7 @@ use bevy_soft_tissue::scenes::cataract::CataractParams;
 mod common;
 use bevy_soft_tissue::solver::PreconditionerKind;
 use clap::Parser;
-use common::headless::{Recording, run_headless_recording};
+use common::headless::{HeadlessSummary, Recording, run_headless_recording};
 
 /// The cataract (MSICS) nucleus-extraction scene: in a window with the
 /// `viewer` feature and a display, otherwise headless with per-phase timings.
@@ -133,6 +134,10 @@ struct Args {
     /// schedule (`SoftTissuePlugins::new(FixedPostUpdate)`).
     #[arg(long)]
     in_fixed_post_update: bool,
+    /// Headless: run the scene this many times and end with the ranges and
+    /// medians of the steps/s, deliveries and penetrations over the runs.
+    #[arg(long, default_value_t = 1)]
+    repeats: usize,
 }
 
 fn gpu_mode(v: &str) -> Result<GpuMode, String> {
@@ -171,149 +176,243 @@ fn headless(args: &Args, params: &CataractParams, config: SoftTissueConfig) -> E
         dir: dir.clone(),
         min_contacts: args.record_min,
     });
-    match run_headless_recording(
-        params,
-        config,
-        body,
-        args.steps,
-        recording.as_ref(),
-        args.in_fixed_post_update,
-    ) {
-        Ok(s) => {
-            println!(
-                "time per phase (ms): median over all steps, mean over steps with 50-90 contacts, mean over the jam (> 90);"
-            );
-            println!(
-                "  step: the phases' timers summed; pipeline: the wall clock of the whole step, which the steps/s below use"
-            );
-            for (((n, v), b), j) in common::headless::PHASES
-                .iter()
-                .zip(s.median_ms)
-                .zip(s.mean_ms_50_90)
-                .zip(s.mean_ms_jam)
-            {
-                println!("  {n:<12} {v:8.3} {b:8.3} {j:8.3}");
-            }
-            println!("steps/s (median step): {:.1}", s.steps_per_second);
-            match s.median_ms_50_90 {
-                Some((wall, sum)) => println!(
-                    "steps/s over steps with 50-90 contacts: {:.1} ({:.1} from the phases' timers)",
-                    1e3 / wall,
-                    1e3 / sum
-                ),
-                None => println!("no step had 50-90 contacts"),
-            }
-            if let (n, Some((wall, sum))) = s.jam {
-                println!(
-                    "steps with more than 90 contacts (lens jammed in the slit): {n}, {:.1} steps/s ({:.1} from the phases' timers), {:.0} contacts on average",
-                    1e3 / wall,
-                    1e3 / sum,
-                    s.contacts_jam
-                );
-            }
-            println!("contacts: median {}, max {}", s.contacts.0, s.contacts.1);
-            println!(
-                "CG iterations per step (both bodies): {:.2} (steps with 50-90 contacts: {:.2})",
-                s.cg_iterations, s.cg_iterations_50_90
-            );
-            println!(
-                "LCP sweeps, contact passes per step with 50-90 contacts: {:.1}, {:.2}",
-                s.lcp_50_90.0, s.lcp_50_90.1
-            );
-            println!(
-                "contact passes: at most {} in a step, more than eight in {} steps, mean {:.2} over the jam",
-                s.max_passes.0, s.max_passes.1, s.passes_jam
-            );
-            println!(
-                "LCP sweeps (first pass): at most {}, mean {:.1} over the jam steps; solves at the sweep limit: {}",
-                s.lcp_sweeps.0, s.lcp_sweeps.1, s.lcp_capped
-            );
-            println!(
-                "compliance on the stepping thread, mean per jam step: {:.1} node columns, {:.0} Gram blocks",
-                s.columns_jam.0, s.columns_jam.1
-            );
-            println!(
-                "factors refreshed by the contact phase's consistency checks: {}; \
-                 rescues that took the worker's factor of the same step: {} of {}",
-                s.consistency_refactors, s.rescues.1, s.rescues.0
-            );
-            if let Some(g) = s.gpu {
-                let per = |t: f64, n: u64| t * 1e3 / n.max(1) as f64;
-                println!("GPU compliance dispatches: {}", g.dispatches);
-                println!(
-                    "GPU compliance: {} builds, {:.3} ms each ({:.3} ms waiting for the device); \
-                     {} factor uploads, {:.3} ms each",
-                    g.builds,
-                    per(g.compute_seconds, g.builds),
-                    per(g.wait_seconds, g.builds),
-                    g.uploads,
-                    per(g.upload_seconds, g.uploads)
-                );
-                if g.timed > 0 {
-                    let [f, gr, c] = g.kernel_seconds;
-                    println!(
-                        "GPU timestamps: {} builds, the device busy {:.3} ms each \
-                         (forward {:.3}, Gram {:.3}, contraction {:.3}); longest path \
-                         {:.1} nodes per build on average, {} at most; {} builds walked \
-                         in workgroup memory, {} by pieces; the forward walk {:.1} steps \
-                         per build on average",
-                        g.timed,
-                        per(g.span_seconds, g.timed),
-                        per(f, g.timed),
-                        per(gr, g.timed),
-                        per(c, g.timed),
-                        g.path_sum as f64 / g.builds.max(1) as f64,
-                        g.longest_path,
-                        g.shared_forwards,
-                        g.piece_forwards,
-                        g.depth_sum as f64 / g.builds.max(1) as f64
-                    );
-                }
-            }
-            if let Some(r) = &recording {
-                println!(
-                    "contact problems with at least {} contacts written to {}: {}",
-                    r.min_contacts,
-                    r.dir.display(),
-                    s.recorded
-                );
-            }
-            let moved = (s.lens_center.1 - s.lens_center.0) * 1e3;
-            println!(
-                "lens centre moved by ({:.2}, {:.2}, {:.2}) mm, peak speed {:.1} mm/s",
-                moved.x,
-                moved.y,
-                moved.z,
-                s.max_lens_speed * 1e3
-            );
-            // The eye is centred at the origin: how far out the lens ended.
-            let (end, radius) = (s.lens_center.1.norm(), params.eye.radius);
-            println!(
-                "lens centre ends {:.2} mm from the eye's centre ({})",
-                end * 1e3,
-                if end > radius + LENS_RADII[2] {
-                    "out of the eye: delivered"
-                } else if end > radius - LENS_RADII[2] {
-                    "in the incision"
-                } else {
-                    "inside the eye"
-                }
-            );
-            println!(
-                "max penetration at step end {:.2e} m, lens-sclera {:.2e} m (tolerance {:.2e} m)",
-                s.max_penetration, s.max_tissue_penetration, s.tolerance
-            );
-            if s.max_penetration > s.tolerance {
-                eprintln!("penetration beyond tolerance");
-                return ExitCode::FAILURE;
-            }
-            ExitCode::SUCCESS
+    let runs = args.repeats.max(1);
+    let mut done = Vec::new();
+    let mut failed = false;
+    for run in 0..runs {
+        if runs > 1 {
+            println!("run {} of {runs}", run + 1);
         }
-        Err(e) => {
-            eprintln!("cataract scene failed: {e}");
-            ExitCode::FAILURE
+        match run_headless_recording(
+            params,
+            config.clone(),
+            body,
+            args.steps,
+            recording.as_ref(),
+            args.in_fixed_post_update,
+        ) {
+            Ok(s) => {
+                print_summary(&s, params, recording.as_ref());
+                if s.max_penetration > s.tolerance {
+                    eprintln!("penetration beyond tolerance");
+                    failed = true;
+                }
+                done.push(s);
+            }
+            Err(e) => {
+                eprintln!("cataract scene failed: {e}");
+                failed = true;
+            }
         }
     }
+    if runs > 1 {
+        print_ranges(&done, params, runs);
+    }
+    if failed {
+        ExitCode::FAILURE
+    } else {
+        ExitCode::SUCCESS
+    }
+}
+
+/// How far out of the eye the lens ended: delivered, in the incision, or inside.
+fn lens_end(s: &HeadlessSummary, params: &CataractParams) -> (f64, &'static str) {
+    // The eye is centred at the origin.
+    let (end, radius) = (s.lens_center.1.norm(), params.eye.radius);
+    let place = if end > radius + LENS_RADII[2] {
+        "out of the eye: delivered"
+    } else if end > radius - LENS_RADII[2] {
+        "in the incision"
+    } else {
+        "inside the eye"
+    };
+    (end, place)
+}
+
+/// The ranges and medians over the runs of `--repeats`.
+fn print_ranges(done: &[HeadlessSummary], params: &CataractParams, runs: usize) {
+    let range = |mut v: Vec<f64>| -> String {
+        if v.is_empty() {
+            return "none".into();
+        }
+        v.sort_by(f64::total_cmp);
+        let n = v.len();
+        let median = if n % 2 == 1 {
+            v[n / 2]
+        } else {
+            0.5 * (v[n / 2 - 1] + v[n / 2])
+        };
+        format!("{:.1}-{:.1}, median {median:.1}", v[0], v[n - 1])
+    };
+    let per_s = |ms: f64| 1e3 / ms;
+    println!(
+        "over {} of {runs} runs (steps/s from the wall clock of the pipeline):",
+        done.len()
+    );
+    println!(
+        "  jam: {} steps/s ({} from the phases' timers)",
+        range(
+            done.iter()
+                .filter_map(|s| s.jam.1.map(|j| per_s(j.0)))
+                .collect()
+        ),
+        range(
+            done.iter()
+                .filter_map(|s| s.jam.1.map(|j| per_s(j.1)))
+                .collect()
+        )
+    );
+    println!(
+        "  steps with 50-90 contacts: {} steps/s ({} from the phases' timers)",
+        range(
+            done.iter()
+                .filter_map(|s| s.median_ms_50_90.map(|b| per_s(b.0)))
+                .collect()
+        ),
+        range(
+            done.iter()
+                .filter_map(|s| s.median_ms_50_90.map(|b| per_s(b.1)))
+                .collect()
+        )
+    );
+    println!(
+        "  median step: {} steps/s",
+        range(done.iter().map(|s| s.steps_per_second).collect())
+    );
+    let delivered = done
+        .iter()
+        .filter(|s| lens_end(s, params).1 == "out of the eye: delivered")
+        .count();
+    let deepest = done.iter().map(|s| s.max_penetration).fold(0.0, f64::max);
+    println!(
+        "  delivered in {delivered} of {runs} runs; deepest penetration at a step's end {deepest:.2e} m"
+    );
+    println!(
+        "  solves at the sweep limit per run: {:?}; consistency refreshes per run: {:?}",
+        done.iter().map(|s| s.lcp_capped).collect::<Vec<_>>(),
+        done.iter()
+            .map(|s| s.consistency_refactors)
+            .collect::<Vec<_>>()
+    );
+}
+
+/// Prints one run's report.
+fn print_summary(s: &HeadlessSummary, params: &CataractParams, recording: Option<&Recording>) {
+    println!(
+        "time per phase (ms): median over all steps, mean over steps with 50-90 contacts, mean over the jam (> 90);"
+    );
+    println!(
+        "  step: the phases' timers summed; pipeline: the wall clock of the whole step, which the steps/s below use"
+    );
+    for (((n, v), b), j) in common::headless::PHASES
+        .iter()
+        .zip(s.median_ms)
+        .zip(s.mean_ms_50_90)
+        .zip(s.mean_ms_jam)
+    {
+        println!("  {n:<12} {v:8.3} {b:8.3} {j:8.3}");
+    }
+    println!("steps/s (median step): {:.1}", s.steps_per_second);
+    match s.median_ms_50_90 {
+        Some((wall, sum)) => println!(
+            "steps/s over steps with 50-90 contacts: {:.1} ({:.1} from the phases' timers)",
+            1e3 / wall,
+            1e3 / sum
+        ),
+        None => println!("no step had 50-90 contacts"),
+    }
+    if let (n, Some((wall, sum))) = s.jam {
+        println!(
+            "steps with more than 90 contacts (lens jammed in the slit): {n}, {:.1} steps/s ({:.1} from the phases' timers), {:.0} contacts on average",
+            1e3 / wall,
+            1e3 / sum,
+            s.contacts_jam
+        );
+    }
+    println!("contacts: median {}, max {}", s.contacts.0, s.contacts.1);
+    println!(
+        "CG iterations per step (both bodies): {:.2} (steps with 50-90 contacts: {:.2})",
+        s.cg_iterations, s.cg_iterations_50_90
+    );
+    println!(
+        "LCP sweeps, contact passes per step with 50-90 contacts: {:.1}, {:.2}",
+        s.lcp_50_90.0, s.lcp_50_90.1
+    );
+    println!(
+        "contact passes: at most {} in a step, more than eight in {} steps, mean {:.2} over the jam",
+        s.max_passes.0, s.max_passes.1, s.passes_jam
+    );
+    println!(
+        "LCP sweeps (first pass): at most {}, mean {:.1} over the jam steps; solves at the sweep limit: {}",
+        s.lcp_sweeps.0, s.lcp_sweeps.1, s.lcp_capped
+    );
+    println!(
+        "compliance on the stepping thread, mean per jam step: {:.1} node columns, {:.0} Gram blocks",
+        s.columns_jam.0, s.columns_jam.1
+    );
+    println!(
+        "factors refreshed by the contact phase's consistency checks: {}; \
+         rescues that took the worker's factor of the same step: {} of {}",
+        s.consistency_refactors, s.rescues.1, s.rescues.0
+    );
+    if let Some(g) = s.gpu {
+        let per = |t: f64, n: u64| t * 1e3 / n.max(1) as f64;
+        println!("GPU compliance dispatches: {}", g.dispatches);
+        println!(
+            "GPU compliance: {} builds, {:.3} ms each ({:.3} ms waiting for the device); \
+             {} factor uploads, {:.3} ms each",
+            g.builds,
+            per(g.compute_seconds, g.builds),
+            per(g.wait_seconds, g.builds),
+            g.uploads,
+            per(g.upload_seconds, g.uploads)
+        );
+        if g.timed > 0 {
+            let [f, gr, c] = g.kernel_seconds;
+            println!(
+                "GPU timestamps: {} builds, the device busy {:.3} ms each \
+                 (forward {:.3}, Gram {:.3}, contraction {:.3}); longest path \
+                 {:.1} nodes per build on average, {} at most; {} builds walked \
+                 in workgroup memory, {} by pieces; the forward walk {:.1} steps \
+                 per build on average",
+                g.timed,
+                per(g.span_seconds, g.timed),
+                per(f, g.timed),
+                per(gr, g.timed),
+                per(c, g.timed),
+                g.path_sum as f64 / g.builds.max(1) as f64,
+                g.longest_path,
+                g.shared_forwards,
+                g.piece_forwards,
+                g.depth_sum as f64 / g.builds.max(1) as f64
+            );
+        }
+    }
+    if let Some(r) = recording {
+        println!(
+            "contact problems with at least {} contacts written to {}: {}",
+            r.min_contacts,
+            r.dir.display(),
+            s.recorded
+        );
+    }
+    let moved = (s.lens_center.1 - s.lens_center.0) * 1e3;
+    println!(
+        "lens centre moved by ({:.2}, {:.2}, {:.2}) mm, peak speed {:.1} mm/s",
+        moved.x,
+        moved.y,
+        moved.z,
+        s.max_lens_speed * 1e3
+    );
+    let (end, place) = lens_end(s, params);
+    println!(
+        "lens centre ends {:.2} mm from the eye's centre ({place})",
+        end * 1e3
+    );
+    println!(
+        "max penetration at step end {:.2e} m, lens-sclera {:.2e} m (tolerance {:.2e} m)",
+        s.max_penetration, s.max_tissue_penetration, s.tolerance
+    );
 }
 
 fn main() -> ExitCode {
