@@ -231,26 +231,14 @@ fn lens_end(s: &HeadlessSummary, params: &CataractParams) -> (f64, &'static str)
 
 /// The ranges and medians over the runs of `--repeats`.
 fn print_ranges(done: &[HeadlessSummary], params: &CataractParams, runs: usize) {
-    let range = |mut v: Vec<f64>| -> String {
-        if v.is_empty() {
-            return "none".into();
-        }
-        v.sort_by(f64::total_cmp);
-        let n = v.len();
-        let median = if n % 2 == 1 {
-            v[n / 2]
-        } else {
-            0.5 * (v[n / 2 - 1] + v[n / 2])
-        };
-        format!("{:.1}-{:.1}, median {median:.1}", v[0], v[n - 1])
-    };
+    let range = |mut v: Vec<f64>| common::bench::spread(&mut v, 1);
     let per_s = |ms: f64| 1e3 / ms;
     println!(
         "over {} of {runs} runs (steps/s from the wall clock of the pipeline):",
         done.len()
     );
     println!(
-        "  jam: {} steps/s ({} from the phases' timers)",
+        "  jam (steps/s): {} ({} from the phases' timers)",
         range(
             done.iter()
                 .filter_map(|s| s.jam.1.map(|j| per_s(j.0)))
@@ -263,7 +251,7 @@ fn print_ranges(done: &[HeadlessSummary], params: &CataractParams, runs: usize) 
         )
     );
     println!(
-        "  steps with 50-90 contacts: {} steps/s ({} from the phases' timers)",
+        "  steps with 50-90 contacts (steps/s): {} ({} from the phases' timers)",
         range(
             done.iter()
                 .filter_map(|s| s.median_ms_50_90.map(|b| per_s(b.0)))
@@ -276,7 +264,7 @@ fn print_ranges(done: &[HeadlessSummary], params: &CataractParams, runs: usize) 
         )
     );
     println!(
-        "  median step: {} steps/s",
+        "  median step (steps/s): {}",
         range(done.iter().map(|s| s.steps_per_second).collect())
     );
     let delivered = done

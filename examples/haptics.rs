@@ -364,24 +364,6 @@ fn report(base: &Run, h: &HapticRun, replay: &Run, apart: f64) {
     );
 }
 
-/// "min–max, median m" of `v`.
-fn spread(v: &mut [f64], digits: usize) -> String {
-    v.sort_by(f64::total_cmp);
-    let n = v.len();
-    let median = if n % 2 == 1 {
-        v[n / 2]
-    } else {
-        0.5 * (v[n / 2 - 1] + v[n / 2])
-    };
-    format!(
-        "{:.d$} to {:.d$}, median {:.d$}",
-        v[0],
-        v[n - 1],
-        median,
-        d = digits
-    )
-}
-
 fn go(args: &Args) -> Result<()> {
     let params = if args.coarse {
         CataractParams::coarse()
@@ -421,16 +403,19 @@ fn go(args: &Args) -> Result<()> {
     }
     if args.repeats > 1 {
         println!("\nover {} repeats:", args.repeats);
-        println!("  haptic rate {} Hz", spread(&mut rates, 2));
-        println!("  tick work p99 {} ms", spread(&mut p99s, 3));
-        println!("  start-time jitter p99 {} ms", spread(&mut jitters, 3));
+        println!("  haptic rate {} Hz", common::bench::spread(&mut rates, 2));
+        println!("  tick work p99 {} ms", common::bench::spread(&mut p99s, 3));
+        println!(
+            "  start-time jitter p99 {} ms",
+            common::bench::spread(&mut jitters, 3)
+        );
         println!(
             "  scene slowdown against the scripted run {} %",
-            spread(&mut vs_script, 1)
+            common::bench::spread(&mut vs_script, 1)
         );
         println!(
             "  scene slowdown against the replay {} %",
-            spread(&mut vs_replay, 1)
+            common::bench::spread(&mut vs_replay, 1)
         );
     }
     Ok(())

@@ -11,3 +11,25 @@ pub fn lens_material() -> TissueMaterial {
 
 #[allow(unused_imports)]
 pub use bevy_soft_tissue::study::compliance::pole_contacts;
+
+/// "min to max, median m" of `v` with `digits` decimals ("none" when empty);
+/// sorts `v`.
+pub fn spread(v: &mut [f64], digits: usize) -> String {
+    if v.is_empty() {
+        return "none".into();
+    }
+    v.sort_by(f64::total_cmp);
+    let n = v.len();
+    let median = if n % 2 == 1 {
+        v[n / 2]
+    } else {
+        0.5 * (v[n / 2 - 1] + v[n / 2])
+    };
+    format!(
+        "{:.d$} to {:.d$}, median {:.d$}",
+        v[0],
+        v[n - 1],
+        median,
+        d = digits
+    )
+}
