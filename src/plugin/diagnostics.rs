@@ -37,11 +37,12 @@ pub struct SoftTissueDiagnostics {
     /// ([`crate::contact::ContactReport::rescue`]), ms.
     pub rescue_ms: f64,
     /// Wall-clock time of the whole step, ms: from the start of the
-    /// [`SoftTissueSystems::Assemble`](super::SoftTissueSystems::Assemble) set
-    /// to the end of the [`SoftTissueSystems::Sync`](super::SoftTissueSystems::Sync) set, every system of the pipeline and the
-    /// scheduling between them. [`Self::step_ms`] sums the phases' own
-    /// timers; the difference is what no phase times (settings, components,
-    /// the scheduler).
+    /// [`SoftTissueSystems::Assemble`](super::SoftTissueSystems::Assemble)
+    /// set to the end of the
+    /// [`SoftTissueSystems::Sync`](super::SoftTissueSystems::Sync) set,
+    /// every system of the pipeline and the scheduling between them.
+    /// [`Self::step_ms`] sums the phases' own timers; the difference is what
+    /// no phase times (settings, components, the scheduler).
     pub pipeline_ms: f64,
     /// When this step's pipeline started.
     #[reflect(ignore)]
