@@ -215,12 +215,15 @@ fn headless(args: &Args, params: &CataractParams, config: SoftTissueConfig) -> E
     }
 }
 
+/// [`lens_end`]'s word for a lens out of the eye.
+const DELIVERED: &str = "out of the eye: delivered";
+
 /// How far out of the eye the lens ended: delivered, in the incision, or inside.
 fn lens_end(s: &HeadlessSummary, params: &CataractParams) -> (f64, &'static str) {
     // The eye is centred at the origin.
     let (end, radius) = (s.lens_center.1.norm(), params.eye.radius);
     let place = if end > radius + LENS_RADII[2] {
-        "out of the eye: delivered"
+        DELIVERED
     } else if end > radius - LENS_RADII[2] {
         "in the incision"
     } else {
@@ -269,7 +272,7 @@ fn print_ranges(done: &[HeadlessSummary], params: &CataractParams, runs: usize) 
     );
     let delivered = done
         .iter()
-        .filter(|s| lens_end(s, params).1 == "out of the eye: delivered")
+        .filter(|s| lens_end(s, params).1 == DELIVERED)
         .count();
     let deepest = done.iter().map(|s| s.max_penetration).fold(0.0, f64::max);
     println!(
