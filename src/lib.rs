@@ -26,8 +26,9 @@
 //! linearized implicit Euler step `(M + hB + h²K) a = b` solved by a
 //! conjugate gradient, preconditioned by an `LDLᵀ` factorization that a
 //! background thread refreshes at low rate and that is warped by the node
-//! rotations since it was made (`P = Rᵀ L D Lᵀ R`) where that warp fits the
-//! current matrix better than the plain factor. See [`solver`] and [`body`].
+//! rotations since it was made (`P = Rᵀ L D Lᵀ R`), or by the body's one turn
+//! since, where that warp fits the current matrix better than the plain
+//! factor. See [`solver`] and [`body`].
 //!
 //! ## Quick start (core only)
 //! ```

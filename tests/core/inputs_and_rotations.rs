@@ -454,15 +454,17 @@ fn inverted_element_turns_continuously_and_recovers() {
     );
 }
 
-/// The rotation warp is tried against the unwarped factor on each solve's
-/// first residual, and the better fit is kept: a warp that is pure noise (the
-/// matrix has not changed, the rotations say it turned) is left out, and a warp
-/// that is exact (the matrix turned rigidly) is kept. Either way CG converges
-/// as if the factor were current.
+/// The rotation warps are tried against the unwarped factor on each solve's
+/// first residual, and the best fit is kept: a warp that is pure noise (the
+/// matrix has not changed, the rotations say it turned) is left out, a warp
+/// that is exact (the matrix turned rigidly) is kept, and where the body
+/// turned rigidly but the node rotations scatter about that turn (as they do
+/// in a tissue that turns while it deforms) the body's one turn is kept.
+/// Each time CG converges as if the factor were current.
 #[test]
 fn rotation_warp_is_kept_only_where_it_fits() {
-    use bevy_soft_tissue::solver::PreconditionerState;
     use bevy_soft_tissue::solver::cg::{self, CgScratch};
+    use bevy_soft_tissue::solver::{PreconditionerState, WarpKind, body_turn};
     let mut body = DeformableBody::new(
         beam([6, 2, 2], 0.06, 0.02),
         TissueMaterial::new(1000.0, 1e5, 0.3),
@@ -520,6 +522,36 @@ fn rotation_warp_is_kept_only_where_it_fits() {
     assert_eq!(pc.stats().warp_offered, 1);
     assert_eq!(pc.stats().warp_declined, 0);
     assert!(it <= 2, "{it} iterations with the exact warp");
+    // The same turn, with each node's rotation off it by ±0.5 rad about its
+    // own axis (in pairs, so that the body's turn is `q` exactly; an odd last
+    // node has `q`): the nodes' warps are wrong, and so is no warp; the
+    // body's one turn is exact.
+    let scattered: Vec<Mat3> = (0..n)
+        .map(|i| {
+            let axis = Unit::new_normalize(v3(1.0, (i / 2) as f64, 2.0 - (i / 2 % 3) as f64));
+            let sign = match (i % 2, i + 1 == n) {
+                (0, true) => 0.0,
+                (0, false) => 1.0,
+                _ => -1.0,
+            };
+            q * *Rotation3::from_axis_angle(&axis, sign * 0.5).matrix()
+        })
+        .collect();
+    assert!((body_turn(&scattered, &identity) - q).norm() < 1e-12);
+    let mut pc = PreconditionerState::new(kind, &a).unwrap();
+    pc.update(&a, &identity, 0).unwrap();
+    pc.update(&turned, &scattered, 1).unwrap();
+    let it = solve(&mut pc, &turned, &bq);
+    assert_eq!(pc.stats().warp_declined, 0);
+    assert_eq!(pc.stats().warp_body, 1);
+    let st = pc.factor_state().unwrap();
+    assert_eq!(st.warp_kind, WarpKind::Body);
+    assert!(st.warped && st.warp.iter().all(|w| (w - q).norm() < 1e-12));
+    assert!(it <= 2, "{it} iterations with the body's turn");
+    // The body's turn follows any rigid turn of scattered rotations.
+    let then: Vec<Mat3> = noise.iter().map(|r| r * r).collect();
+    let now: Vec<Mat3> = then.iter().map(|r| q * r).collect();
+    assert!((body_turn(&now, &then) - q).norm() < 1e-12);
 }
 
 /// Where the two smallest singular values of an inverted `F` cross, the plain
