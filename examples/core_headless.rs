@@ -115,6 +115,16 @@ fn run(kind: PreconditionerKind, steps: usize) -> Result<()> {
         mean(&ages),
         unconverged
     );
+    let p = body.preconditioner().stats();
+    if p.warp_offered > 0 {
+        println!(
+            "  warp chosen for {} solves: each node's turn {}, the body's turn {}, none {}",
+            p.warp_offered,
+            p.warp_offered - p.warp_body - p.warp_declined,
+            p.warp_body,
+            p.warp_declined
+        );
+    }
     if kind == PreconditionerKind::Async {
         println!(
             "  async: median step {:.3} ms with a factorization in flight ({} steps), {:.3} ms without ({} steps)",

@@ -280,7 +280,7 @@ pub struct FactorState {
     /// Each node's turn `Q_i = R_i R̂_iᵀ` from those rotations to the current ones.
     pub node_warp: Vec<Mat3>,
     /// The body's turn since then, one rotation for every node (see
-    /// [`body_turn`] and the module docs, "One turn for the whole body").
+    /// [`body_turn`] and the module docs, "Which warp, if any").
     pub body_warp: Mat3,
     /// Which of the two [`Self::warp`] holds.
     pub warp_kind: WarpKind,
