@@ -346,6 +346,12 @@ fn print_summary(s: &HeadlessSummary, params: &CataractParams, recording: Option
          rescues that took the worker's factor of the same step: {} of {}",
         s.consistency_refactors, s.rescues.1, s.rescues.0
     );
+    let (offered, body, none) = s.warps;
+    println!(
+        "warp of the lagging factors (both bodies): of {offered} solves, each node's turn {}, \
+         the body's turn {body}, none {none}",
+        offered - body - none
+    );
     if let Some(g) = s.gpu {
         let per = |t: f64, n: u64| t * 1e3 / n.max(1) as f64;
         println!("GPU compliance dispatches: {}", g.dispatches);

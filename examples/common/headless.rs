@@ -96,6 +96,11 @@ pub struct HeadlessSummary {
     /// and of those the ones that took the worker's factor of the same step
     /// ([`bevy_soft_tissue::solver::PreconditionerStats::rescues_from_worker`]).
     pub rescues: (u64, u64),
+    /// The warps the lagging factors were applied with, all bodies: solves
+    /// with a warp to choose, and of those the ones that took the body's one
+    /// turn and the ones that took none (see
+    /// [`bevy_soft_tissue::solver::WarpKind`]).
+    pub warps: (u64, u64, u64),
     /// Contact problems written (see [`Recording`]).
     pub recorded: usize,
     /// The GPU compliance's counters at the end, when it ran.
@@ -415,6 +420,10 @@ pub fn run_headless_recording(
         rescues: body_q.iter(app.world()).fold((0, 0), |(r, w), b| {
             let p = b.0.report().preconditioner;
             (r + p.rescues, w + p.rescues_from_worker)
+        }),
+        warps: body_q.iter(app.world()).fold((0, 0, 0), |(o, b, d), body| {
+            let p = body.0.report().preconditioner;
+            (o + p.warp_offered, b + p.warp_body, d + p.warp_declined)
         }),
         recorded,
         gpu: gpu_counters(&app),
