@@ -633,10 +633,10 @@ impl PreconditionerState {
     fn apply_warped(&mut self, kind: Option<WarpKind>, r: &[Vec3], z: &mut [Vec3]) {
         if let Some(st) = &mut self.state {
             st.warped = kind.is_some();
-            if let Some(kind) = kind {
-                if st.warp_kind != kind {
-                    st.set_warp_kind(kind);
-                }
+            if let Some(kind) = kind
+                && st.warp_kind != kind
+            {
+                st.set_warp_kind(kind);
             }
         }
         self.apply(r, z);
@@ -686,10 +686,10 @@ impl Preconditioner for PreconditionerState {
                     }
                 }
                 self.alt = alt;
-                if let (Some(st), Some(kind)) = (&mut self.state, best.0) {
-                    if st.warp_kind != kind {
-                        st.set_warp_kind(kind);
-                    }
+                if let (Some(st), Some(kind)) = (&mut self.state, best.0)
+                    && st.warp_kind != kind
+                {
+                    st.set_warp_kind(kind);
                 }
                 self.warp_choice = Some((version, best.0));
                 best.0
