@@ -25,6 +25,24 @@ fn factorized_w_matches_dense_reference_from_same_factor() {
         let wref = reference_w(scene.contact.jacobian(0), &inv, m, h, true);
         let err = max_rel_diff(w, &wref);
         assert!(err <= 1e-10, "{mode:?}: relative difference {err:e}");
+        // The rows are warped by the warp the preconditioner chose (each
+        // node's turn or the body's): `W = h² H Q P⁻¹ Qᵀ Hᵀ`.
+        let n = b.num_nodes();
+        let mut q = DMatrix::<f64>::identity(3 * n, 3 * n);
+        if st.warped {
+            for (i, w) in st.warp.iter().enumerate() {
+                q.view_mut((3 * i, 3 * i), (3, 3)).copy_from(w);
+            }
+        }
+        let warped_inv = &q * &inv * q.transpose();
+        let wref = reference_w(scene.contact.jacobian(0), &warped_inv, m, h, false);
+        let err = max_rel_diff(w, &wref);
+        assert!(
+            err <= 1e-10,
+            "{mode:?}, warp {:?} (applied: {}): relative difference {err:e}",
+            st.warp_kind,
+            st.warped
+        );
     }
 }
 
