@@ -267,6 +267,19 @@ pub fn body_turn(now: &[Mat3], then: &[Mat3]) -> Mat3 {
     polar_rotation(&sum(now)) * polar_rotation(&sum(then)).transpose()
 }
 
+/// Fills `out` with the warp of `kind` from the node rotations `then` to
+/// `now`: each node's `now_i thenᵢᵀ`, or [`body_turn`] for every node.
+pub fn fill_warp(kind: WarpKind, now: &[Mat3], then: &[Mat3], out: &mut [Mat3]) {
+    match kind {
+        WarpKind::Nodes => {
+            for ((o, n), t) in out.iter_mut().zip(now).zip(then) {
+                *o = n * t.transpose();
+            }
+        }
+        WarpKind::Body => out.fill(body_turn(now, then)),
+    }
+}
+
 /// `LDLᵀ` factor in use plus the rotations it was made with.
 #[derive(Debug)]
 pub struct FactorState {
@@ -589,9 +602,7 @@ impl PreconditionerState {
             st.rotated = self.kind.needs_rotations() && st.step != step;
             st.warped = st.rotated;
             if st.rotated {
-                for i in 0..st.node_warp.len() {
-                    st.node_warp[i] = rotations[i] * st.rotations[i].transpose();
-                }
+                fill_warp(WarpKind::Nodes, rotations, &st.rotations, &mut st.node_warp);
                 st.body_warp = body_turn(rotations, &st.rotations);
                 // The kind chosen for this factor holds until it is tried again.
                 let kind = match self.warp_choice {
@@ -626,6 +637,13 @@ impl FactorState {
         }
         self.warp_kind = kind;
     }
+
+    /// [`Self::set_warp_kind`] where [`Self::warp`] holds another kind.
+    fn switch_warp_kind(&mut self, kind: WarpKind) {
+        if self.warp_kind != kind {
+            self.set_warp_kind(kind);
+        }
+    }
 }
 
 impl PreconditionerState {
@@ -633,10 +651,8 @@ impl PreconditionerState {
     fn apply_warped(&mut self, kind: Option<WarpKind>, r: &[Vec3], z: &mut [Vec3]) {
         if let Some(st) = &mut self.state {
             st.warped = kind.is_some();
-            if let Some(kind) = kind
-                && st.warp_kind != kind
-            {
-                st.set_warp_kind(kind);
+            if let Some(kind) = kind {
+                st.switch_warp_kind(kind);
             }
         }
         self.apply(r, z);
@@ -686,10 +702,8 @@ impl Preconditioner for PreconditionerState {
                     }
                 }
                 self.alt = alt;
-                if let (Some(st), Some(kind)) = (&mut self.state, best.0)
-                    && st.warp_kind != kind
-                {
-                    st.set_warp_kind(kind);
+                if let (Some(st), Some(kind)) = (&mut self.state, best.0) {
+                    st.switch_warp_kind(kind);
                 }
                 self.warp_choice = Some((version, best.0));
                 best.0

@@ -494,6 +494,14 @@ fn rotation_warp_is_kept_only_where_it_fits() {
         r.iterations
     };
     let identity = vec![Mat3::identity(); n];
+    // A factor of `a` with the identity rotations, then the step of `now`
+    // with the node rotations `rot`.
+    let lagging = |now: &BlockCsr, rot: &[Mat3]| {
+        let mut pc = PreconditionerState::new(kind, &a).unwrap();
+        pc.update(&a, &identity, 0).unwrap();
+        pc.update(now, rot, 1).unwrap();
+        pc
+    };
     // Noise: random node rotations over an unchanged matrix.
     let noise: Vec<Mat3> = (0..n)
         .map(|i| {
@@ -501,9 +509,7 @@ fn rotation_warp_is_kept_only_where_it_fits() {
             *Rotation3::from_axis_angle(&axis, 0.3 + 0.1 * (i % 5) as f64).matrix()
         })
         .collect();
-    let mut pc = PreconditionerState::new(kind, &a).unwrap();
-    pc.update(&a, &identity, 0).unwrap();
-    pc.update(&a, &noise, 1).unwrap();
+    let mut pc = lagging(&a, &noise);
     let it = solve(&mut pc, &a, &b);
     assert_eq!(pc.stats().warp_offered, 1);
     assert_eq!(pc.stats().warp_declined, 1);
@@ -515,9 +521,7 @@ fn rotation_warp_is_kept_only_where_it_fits() {
         *v = q * *v * q.transpose();
     }
     let bq: Vec<Vec3> = b.iter().map(|v| q * v).collect();
-    let mut pc = PreconditionerState::new(kind, &a).unwrap();
-    pc.update(&a, &identity, 0).unwrap();
-    pc.update(&turned, &vec![q; n], 1).unwrap();
+    let mut pc = lagging(&turned, &vec![q; n]);
     let it = solve(&mut pc, &turned, &bq);
     assert_eq!(pc.stats().warp_offered, 1);
     assert_eq!(pc.stats().warp_declined, 0);
@@ -538,9 +542,7 @@ fn rotation_warp_is_kept_only_where_it_fits() {
         })
         .collect();
     assert!((body_turn(&scattered, &identity) - q).norm() < 1e-12);
-    let mut pc = PreconditionerState::new(kind, &a).unwrap();
-    pc.update(&a, &identity, 0).unwrap();
-    pc.update(&turned, &scattered, 1).unwrap();
+    let mut pc = lagging(&turned, &scattered);
     let it = solve(&mut pc, &turned, &bq);
     assert_eq!(pc.stats().warp_declined, 0);
     assert_eq!(pc.stats().warp_body, 1);

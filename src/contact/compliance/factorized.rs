@@ -11,8 +11,8 @@ use crate::body::DeformableBody;
 use crate::error::{Result, SoftTissueError};
 use crate::math::{Mat3, Vec3};
 use crate::solver::columns::{ColumnCache, ColumnPrefetch, FactorKey};
+use crate::solver::fill_warp;
 use crate::solver::ldlt::{LdltFactor, LdltSymbolic};
-use crate::solver::{WarpKind, body_turn};
 
 /// A copy of the preconditioner's factor that `W` and the correction keep
 /// using for a few steps after the preconditioner moved on, so that the node
@@ -170,14 +170,7 @@ impl FactorSource {
         // The kind of warp the preconditioner chose for its own factor.
         let now = body.node_rotations();
         snap.warp.resize(now.len(), Mat3::identity());
-        match st.warp_kind {
-            WarpKind::Nodes => {
-                for i in 0..now.len() {
-                    snap.warp[i] = now[i] * snap.rotations[i].transpose();
-                }
-            }
-            WarpKind::Body => snap.warp.fill(body_turn(now, &snap.rotations)),
-        }
+        fill_warp(st.warp_kind, now, &snap.rotations, &mut snap.warp);
         Ok(())
     }
 }
