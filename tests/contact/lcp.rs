@@ -561,3 +561,28 @@ fn reusing_the_last_factorization_keeps_the_answer_and_saves_lus() {
         assert_eq!(a, b, "{name}");
     }
 }
+
+/// A scratch that solved another problem before (here the same contacts
+/// with `W` scaled: the subspace step may see the same free rows and
+/// sliding contacts) gives the forces of a fresh scratch, to the bit: no
+/// factor of the old `W` is reused.
+#[test]
+fn a_used_scratch_solves_a_new_w_as_a_fresh_one() {
+    let settings = settings(LcpSolver::Subspace, 1e-8, 300);
+    for (name, p) in shipped() {
+        let mut used = lcp::LcpScratch::default();
+        let mut l = p.lambda0.clone();
+        lcp::solve(
+            &p.w, &p.delta0, &p.rows, &p.mu, &mut l, &settings, &mut used,
+        );
+        for scale in [1.0 + 1e-9, 1.25] {
+            let w: Vec<f64> = p.w.iter().map(|x| x * scale).collect();
+            let (mut a, mut b) = (p.lambda0.clone(), p.lambda0.clone());
+            let ra = lcp::solve(&w, &p.delta0, &p.rows, &p.mu, &mut a, &settings, &mut used);
+            let mut fresh = lcp::LcpScratch::default();
+            let rb = lcp::solve(&w, &p.delta0, &p.rows, &p.mu, &mut b, &settings, &mut fresh);
+            assert_eq!(a, b, "{name}, W × {scale}");
+            assert_eq!(ra.factorizations, rb.factorizations, "{name}, W × {scale}");
+        }
+    }
+}

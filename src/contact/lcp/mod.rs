@@ -23,7 +23,9 @@
 //!   acceleration costs `O(m)` per sweep, not a product with `W`.
 //! - [`LcpSolver::Subspace`] (the default, `subspace.rs`): after each block
 //!   Gauss–Seidel sweep, a semismooth Newton step on the active set (dense
-//!   LU of the free rows), kept when it lowers the residual. On the recorded
+//!   factorizations of the free rows: an LU, then in its second phase a
+//!   Cholesky factor and a Schur complement), kept when it lowers the
+//!   residual. On the recorded
 //!   cataract problems it meets 1e-6 in one to ten sweeps where the
 //!   Gauss–Seidel variants stall above 1e-4 after hundreds (`cargo bench
 //!   --bench lcp`; the table is in the README).

@@ -22,7 +22,7 @@ impl LcpScratch {
     }
 
     /// With `on`, the subspace step ([`LcpSolver::Subspace`]) may start from
-    /// the LU factors the last solve left, on the active set they were made
+    /// the factors the last solve left, on the active set they were made
     /// for (a triangular solve instead of a factorization), when that active
     /// set classifies the warm start again: for a caller that solves the
     /// same `W` again and again with a slowly changing `δ₀`, warm-started
@@ -34,7 +34,7 @@ impl LcpScratch {
         self.forget_factorization();
     }
 
-    /// Drops the LU factors kept for [`Self::reuse_factorization`] (`W`
+    /// Drops the factors kept for [`Self::reuse_factorization`] (`W`
     /// changed).
     pub fn forget_factorization(&mut self) {
         self.subspace.forget();

@@ -12,9 +12,13 @@
 //!    (`ρ = 1/W_nn`, the primal–dual active set): *open* (`z` in the polar
 //!    cone: forces zero), *stick* (`z` in the cone: `δ = 0`), or *slide*
 //!    (otherwise: `δ_n = 0` and `λ_t = μ λ_n P(z_t)`, `P(v) = v/‖v‖`).
-//! 2. **Newton** on those equations over the free force rows, with a dense
-//!    LU with partial pivoting (faer, sequential; the system is unsymmetric),
-//!    its `δ = 0` rows damped by a shift of their diagonal ([`NEWTON_SHIFTS`]).
+//! 2. **Newton** on those equations over the free force rows, with dense
+//!    factorizations (faer, sequential), its `δ = 0` rows damped by a shift
+//!    of their diagonal ([`NEWTON_SHIFTS`]). Phase 1's system is unsymmetric:
+//!    an LU with partial pivoting. Phase 2's is split at the sliding rows
+//!    ([`Split`]): a Cholesky factorization of its symmetric `δ = 0` block and
+//!    an LU of the Schur complement on the sliding rows (two per sliding
+//!    contact), with an LU of the whole where the Cholesky fails.
 //!    - *Phase 1*, until the free rows stop changing: a sliding contact is
 //!      put on the cone's rim in the direction of `z_t` and only its normal
 //!      force is free (its column of `W` carries the tangential force
@@ -53,16 +57,25 @@
 //! gives it a start near the active set and corrects what a rejected step
 //! leaves.
 //!
-//! Cost per iteration: the LU of the free rows (`2/3 |A|³`) and `m` per
+//! Cost per iteration: the LU of the free rows (`2/3 |F|³`) and `m` per
 //! changed force to keep `δ = δ₀ + W λ` (a Newton update changes the free
 //! rows only), against `m` per changed row for a sweep. Within phase 2, an
-//! iteration on the same active set as the last LU reuses it (a chord step:
-//! only the sliding rows' linearization has moved), a triangular solve
-//! instead of a factorization; when the residual then stops halving, the
-//! contacts are classified again and the matrix refactored. On the accuracy
-//! study's lens through the hole (up to 1 830 rows, 570 free) the two cut
-//! the LCP's mean from 12.3 to 8.8 ms per step; on 45 recorded cataract jam
-//! problems the median to 10⁻⁶ from 1.37 to 0.93 ms.
+//! iteration on the same active set as the last factorization reuses it (a
+//! chord step: only the sliding rows' linearization has moved), triangular
+//! solves instead of a factorization; when the residual then stops halving,
+//! the contacts are classified again and the matrix refactored. On the
+//! accuracy study's lens through the hole (up to 1 830 rows, 570 free) the
+//! two cut the LCP's mean from 12.3 to 8.8 ms per step; on 45 recorded
+//! cataract jam problems the median to 10⁻⁶ from 1.37 to 0.93 ms.
+//!
+//! Phase 2's split costs `|A|³/3` for the Cholesky factor, `2 |A|² |S|` for
+//! `X = K⁻¹ W_AS` and `2 |A| |S|²` for the Schur complement, against
+//! `2/3 (|A| + |S|)³` for the LU of the whole; and where a classification
+//! keeps the free rows and which contacts slide (a fifth of phase 2's
+//! factorizations on the lens through the hole), only `C_SA`, `D_SS` and the
+//! Schur complement are made again. Matrices are filled a column at a time
+//! (a row of `W`, contiguous writes). See the README's Benchmarks, "A split
+//! Newton matrix", for what these save.
 
 use std::mem::MaybeUninit;
 
@@ -123,6 +136,17 @@ struct Slide {
     mu: f64,
 }
 
+impl Slide {
+    /// `Q = I − P Pᵀ`, the projection across the slip direction.
+    fn q(&self) -> [[f64; 2]; 2] {
+        let p = self.p;
+        [
+            [1.0 - p[0] * p[0], -p[0] * p[1]],
+            [-p[1] * p[0], 1.0 - p[1] * p[1]],
+        ]
+    }
+}
+
 /// A contact's class in the active set (on its normal row).
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 enum Kind {
@@ -181,12 +205,68 @@ pub(super) struct SubspaceScratch {
     perm_inv: Vec<usize>,
     /// faer's workspace.
     mem: Vec<MaybeUninit<u8>>,
+    /// Phase 2's Newton system split at its sliding rows ([`solve_split`]).
+    split: Split,
+}
+
+/// Phase 2's Newton matrix in blocks: `A`, the free rows whose equation is
+/// `δ_r = 0` (every free normal row and the tangential rows of sticking
+/// contacts), and `S`, the tangential rows of sliding contacts:
+///
+/// ```text
+/// [ K     W_AS ] [Δλ_A]   [b_A]      K = W_AA + ε diag W_AA
+/// [ C_SA  D_SS ] [Δλ_S] = [b_S]
+/// ```
+///
+/// `K` is symmetric positive definite (a principal block of `W`, its
+/// diagonal shifted, see [`NEWTON_SHIFTS`]) and depends on the active set
+/// only; the sliding linearization (`P`, `κ`) is in `C_SA` and `D_SS`
+/// alone. The step factors `K` by Cholesky (half the work of an LU of the
+/// same size), forms `X = K⁻¹ W_AS` once per active set, and solves the
+/// Schur complement `S = D_SS − C_SA X` (`|S|` rows, two per sliding contact)
+/// by LU: `Δλ_S = S⁻¹ (b_S − C_SA K⁻¹ b_A)`, `Δλ_A = K⁻¹ b_A − X Δλ_S`.
+#[derive(Debug, Clone, Default)]
+struct Split {
+    /// Whether the factors below are those of the free rows `lu_free`
+    /// (false: the whole matrix's LU is in `SubspaceScratch::mat`).
+    factored: bool,
+    /// Positions (in `free`) of the `A` rows and of the `S` rows.
+    pos_a: Vec<usize>,
+    pos_s: Vec<usize>,
+    /// `pos_s` of the factorization before.
+    pos_s_prev: Vec<usize>,
+    /// Whether `k` and `x` hold the factors of the free rows `kx_rows` with
+    /// the shift `kx_shift` (a reclassification that keeps the free rows and
+    /// which contacts slide only changes `C_SA` and `D_SS`).
+    kx_valid: bool,
+    kx_rows: Vec<usize>,
+    kx_shift: f64,
+    /// `K`, then its Cholesky factor (column-major, `|A|²`, lower triangle).
+    k: Vec<f64>,
+    /// `W_AS`, then `X = K⁻¹ W_AS` (column-major, `|A| × |S|`).
+    x: Vec<f64>,
+    /// `C_SAᵀ` (column-major, `|A| × |S|`: one sliding row per column).
+    c: Vec<f64>,
+    /// `D_SS`, then the Schur complement, then its LU (column-major).
+    s: Vec<f64>,
+    perm: Vec<usize>,
+    perm_inv: Vec<usize>,
+    /// Right-hand sides of the `A` and `S` rows, then their steps.
+    ya: Vec<f64>,
+    ys: Vec<f64>,
+    /// The step by position in `free`, before it is checked.
+    step: Vec<f64>,
+    /// Solve phase 2 with one LU of the whole matrix instead (a test compares
+    /// the two).
+    lu_only: bool,
 }
 
 impl SubspaceScratch {
-    /// Drops the LU factors a step could start from.
+    /// Drops the factors a step could start from.
     pub(super) fn forget(&mut self) {
         self.lu_free.clear();
+        self.split.factored = false;
+        self.split.kx_valid = false;
     }
 
     /// Sets the next step's shift (one of [`NEWTON_SHIFTS`]); an LU kept for
@@ -243,7 +323,8 @@ pub(super) fn step(
     // cycle.
     let warm = s.reuse && !s.enumerate && !s.lu_free.is_empty();
     if !warm {
-        s.lu_free.clear();
+        // `W` may have changed since the last step: no factor is kept.
+        s.forget();
     }
     let mut best = f64::INFINITY;
     let mut last_r = f64::INFINITY;
@@ -626,6 +707,9 @@ fn solve_newton(
     full: bool,
     reuse: bool,
 ) -> Option<()> {
+    if full && solve_split(w, m, s, reuse) {
+        return s.rhs.iter().all(|v| v.is_finite()).then_some(());
+    }
     let n = s.free.len();
     if !reuse {
         s.mat.clear();
@@ -633,17 +717,16 @@ fn solve_newton(
     }
     s.rhs.clear();
     s.rhs.resize(n, 0.0);
+    if !reuse {
+        delta_columns(w, m, s, full);
+    }
     // Which contact's sliding data a tangential row belongs to: the normal row
     // is the free row just before (r, r+1, r+2 are pushed together).
     let mut i = 0;
     while i < n {
         let r = s.free[i];
         // δ_r = 0, also for the normal row of a sliding contact.
-        if reuse {
-            s.rhs[i] = -s.delta[r];
-        } else {
-            delta_row(w, m, r, i, s, full);
-        }
+        s.rhs[i] = -s.delta[r];
         let Some(sl) = s.slide.get(r).copied().flatten().filter(|_| full) else {
             i += 1;
             continue;
@@ -653,10 +736,7 @@ fn solve_newton(
         let Slide {
             p, kappa, rho, mu, ..
         } = sl;
-        let q = [
-            [1.0 - p[0] * p[0], -p[0] * p[1]],
-            [-p[1] * p[0], 1.0 - p[1] * p[1]],
-        ];
+        let q = sl.q();
         let (w1, w2) = (&w[(r + 1) * m..(r + 2) * m], &w[(r + 2) * m..(r + 3) * m]);
         for k in 0..2 {
             let ik = i + 1 + k;
@@ -705,21 +785,344 @@ fn solve_newton(
     s.rhs.iter().all(|v| v.is_finite()).then_some(())
 }
 
-/// Equation `i` of the Newton matrix, `δ_r = 0`: row `r` of `W` over the free
-/// columns, where in phase 1 (`!full`) the column of a sliding normal also
-/// carries its tangential force (`μ P` along the tangential rows).
-fn delta_row(w: &[f64], m: usize, r: usize, i: usize, s: &mut SubspaceScratch, full: bool) {
-    let n = s.free.len();
-    let row = &w[r * m..(r + 1) * m];
-    for (j, &cj) in s.free.iter().enumerate() {
-        // The diagonal shifted: a damped step (see NEWTON_SHIFTS).
-        let mut v = row[cj] * if j == i { 1.0 + s.shift } else { 1.0 };
-        if let (false, Some(Slide { p, mu, .. })) = (full, s.slide[cj]) {
-            v += mu * (p[0] * row[cj + 1] + p[1] * row[cj + 2]);
-        }
-        s.mat[j * n + i] = v;
+/// Phase 2's Newton step by blocks ([`Split`]) into `s.rhs`: factors `K`,
+/// `X` and the Schur complement unless `reuse` (a chord step on the factors
+/// of the same free rows). Returns false where it did not solve: `K` not
+/// positive definite in floating point, a chord step on factors it did not
+/// make, or [`Split::lu_only`]; the caller then solves by one LU.
+fn solve_split(w: &[f64], m: usize, s: &mut SubspaceScratch, reuse: bool) -> bool {
+    if s.split.lu_only || reuse && !s.split.factored {
+        return false;
     }
-    s.rhs[i] = -s.delta[r];
+    let n = s.free.len();
+    let sp = &mut s.split;
+    if !reuse {
+        sp.factored = false;
+        std::mem::swap(&mut sp.pos_s, &mut sp.pos_s_prev);
+        for v in [
+            &mut sp.pos_a,
+            &mut sp.pos_s,
+            &mut sp.pos_s_prev,
+            &mut sp.kx_rows,
+        ] {
+            v.reserve(n.saturating_sub(v.len()));
+        }
+        sp.pos_a.clear();
+        sp.pos_s.clear();
+        let mut i = 0;
+        while i < n {
+            sp.pos_a.push(i);
+            if s.slide[s.free[i]].is_some() {
+                sp.pos_s.extend([i + 1, i + 2]);
+                i += 3;
+            } else {
+                i += 1;
+            }
+        }
+    }
+    let (na, ns) = (sp.pos_a.len(), sp.pos_s.len());
+    // Workspace and blocks sized by `n = |A| + |S|`, not by the split, so
+    // that a step whose split differs from every one before on as many free
+    // rows allocates nothing (`|A| |S| ≤ n²/4`, `|S| ≤ 2n/3`).
+    let req = faer::linalg::cholesky::llt::factor::cholesky_in_place_scratch::<f64>(
+        n,
+        Par::Seq,
+        Default::default(),
+    )
+    .or(lu::factor::lu_in_place_scratch::<usize, f64>(
+        n,
+        n,
+        Par::Seq,
+        Default::default(),
+    ))
+    .or(lu::solve::solve_in_place_scratch::<usize, f64>(
+        n,
+        1,
+        Par::Seq,
+    ));
+    s.mem
+        .resize(req.unaligned_bytes_required(), MaybeUninit::uninit());
+    if !reuse {
+        let quarter = n * n / 4 + n;
+        for (v, cap) in [
+            (&mut sp.k, n * n),
+            (&mut sp.x, quarter),
+            (&mut sp.c, quarter),
+            (&mut sp.s, 4 * n * n / 9 + n),
+        ] {
+            v.reserve(cap.saturating_sub(v.len()));
+        }
+        for v in [&mut sp.ya, &mut sp.ys, &mut sp.step] {
+            v.reserve(n.saturating_sub(v.len()));
+        }
+        for v in [&mut sp.perm, &mut sp.perm_inv] {
+            v.reserve(n.saturating_sub(v.len()));
+        }
+        let keep = sp.kx_valid
+            && sp.kx_shift == s.shift
+            && sp.kx_rows == s.free
+            && sp.pos_s == sp.pos_s_prev;
+        if !keep {
+            sp.kx_valid = false;
+            sp.k.clear();
+            sp.k.resize(na * na, 0.0);
+            sp.x.clear();
+            sp.x.resize(na * ns, 0.0);
+            // A column at a time: column c of W over the A rows is row c of
+            // W (W is symmetric). The Cholesky factorization reads the lower
+            // triangle only.
+            for (ja, &pj) in sp.pos_a.iter().enumerate() {
+                let wc = &w[s.free[pj] * m..(s.free[pj] + 1) * m];
+                let col = &mut sp.k[ja * na + ja..(ja + 1) * na];
+                for (c, &pi) in col.iter_mut().zip(&sp.pos_a[ja..]) {
+                    *c = wc[s.free[pi]];
+                }
+                // The diagonal shifted: a damped step (see NEWTON_SHIFTS).
+                col[0] *= 1.0 + s.shift;
+            }
+            for (js, &pj) in sp.pos_s.iter().enumerate() {
+                let wc = &w[s.free[pj] * m..(s.free[pj] + 1) * m];
+                let col = &mut sp.x[js * na..(js + 1) * na];
+                for (c, &pi) in col.iter_mut().zip(&sp.pos_a) {
+                    *c = wc[s.free[pi]];
+                }
+            }
+            let chol = faer::linalg::cholesky::llt::factor::cholesky_in_place(
+                MatMut::from_column_major_slice_mut(&mut sp.k, na, na),
+                Default::default(),
+                Par::Seq,
+                MemStack::new(&mut s.mem),
+                Default::default(),
+            );
+            if chol.is_err() {
+                return false;
+            }
+            s.factorizations += 1;
+            if ns > 0 {
+                faer::linalg::cholesky::llt::solve::solve_in_place(
+                    faer::MatRef::from_column_major_slice(&sp.k, na, na),
+                    MatMut::from_column_major_slice_mut(&mut sp.x, na, ns),
+                    Par::Seq,
+                    MemStack::new(&mut s.mem),
+                );
+            }
+            sp.kx_valid = true;
+            sp.kx_rows.clone_from(&s.free);
+            sp.kx_shift = s.shift;
+        }
+        // C_SAᵀ and D_SS: the linearized λ_t − μ λ_n P = 0 of each sliding
+        // contact (see `solve_newton`), one column of C_SAᵀ per sliding row.
+        sp.c.clear();
+        sp.c.resize(na * ns, 0.0);
+        sp.s.clear();
+        sp.s.resize(ns * ns, 0.0);
+        let mut is = 0;
+        for (ia, &pi) in sp.pos_a.iter().enumerate() {
+            let r = s.free[pi];
+            let Some(sl) = s.slide[r] else {
+                continue;
+            };
+            let (p, kappa, rho, mu, q) = (sl.p, sl.kappa, sl.rho, sl.mu, sl.q());
+            let (w1, w2) = (&w[(r + 1) * m..(r + 2) * m], &w[(r + 2) * m..(r + 3) * m]);
+            for k in 0..2 {
+                let row = is + k;
+                let (a, b) = (kappa * rho * q[k][0], kappa * rho * q[k][1]);
+                let col = &mut sp.c[row * na..(row + 1) * na];
+                for (c, &pj) in col.iter_mut().zip(&sp.pos_a) {
+                    let cj = s.free[pj];
+                    *c = a * w1[cj] + b * w2[cj];
+                }
+                col[ia] -= mu * p[k];
+                for (js, &pj) in sp.pos_s.iter().enumerate() {
+                    let cj = s.free[pj];
+                    sp.s[js * ns + row] = a * w1[cj] + b * w2[cj];
+                }
+                for l in 0..2 {
+                    let id = if k == l { 1.0 } else { 0.0 };
+                    sp.s[(is + l) * ns + row] += id - kappa * q[k][l];
+                }
+            }
+            is += 2;
+        }
+        if ns > 0 {
+            // S = D_SS − C_SA X, then its LU.
+            faer::linalg::matmul::matmul(
+                MatMut::from_column_major_slice_mut(&mut sp.s, ns, ns),
+                faer::Accum::Add,
+                faer::MatRef::from_column_major_slice(&sp.c, na, ns).transpose(),
+                faer::MatRef::from_column_major_slice(&sp.x, na, ns),
+                -1.0,
+                Par::Seq,
+            );
+            sp.perm.clear();
+            sp.perm.resize(ns, 0);
+            sp.perm_inv.clear();
+            sp.perm_inv.resize(ns, 0);
+            lu::factor::lu_in_place(
+                MatMut::from_column_major_slice_mut(&mut sp.s, ns, ns),
+                &mut sp.perm,
+                &mut sp.perm_inv,
+                Par::Seq,
+                MemStack::new(&mut s.mem),
+                Default::default(),
+            );
+        }
+        sp.factored = true;
+    }
+    // The right-hand sides as the whole matrix's (`−δ_r`, and
+    // `−(λ_t − μ λ_n P)` on the tangential rows of the contacts sliding now:
+    // in a chord step across solves a contact can have changed between
+    // sticking and sliding), by the blocks of the factorization.
+    s.rhs.clear();
+    s.rhs.extend(s.free.iter().map(|&r| -s.delta[r]));
+    for (i, &r) in s.free.iter().enumerate() {
+        if let Some(Slide { p, mu, .. }) = s.slide[r] {
+            for k in 0..2 {
+                s.rhs[i + 1 + k] = -(s.lambda[r + 1 + k] - mu * s.lambda[r].max(0.0) * p[k]);
+            }
+        }
+    }
+    sp.ya.clear();
+    sp.ya.extend(sp.pos_a.iter().map(|&i| s.rhs[i]));
+    sp.ys.clear();
+    sp.ys.extend(sp.pos_s.iter().map(|&i| s.rhs[i]));
+    let l = faer::MatRef::from_column_major_slice(&sp.k, na, na);
+    let ya = MatMut::from_column_major_slice_mut(&mut sp.ya, na, 1);
+    faer::linalg::cholesky::llt::solve::solve_in_place(l, ya, Par::Seq, MemStack::new(&mut s.mem));
+    if ns > 0 {
+        faer::linalg::matmul::matmul(
+            MatMut::from_column_major_slice_mut(&mut sp.ys, ns, 1),
+            faer::Accum::Add,
+            faer::MatRef::from_column_major_slice(&sp.c, na, ns).transpose(),
+            faer::MatRef::from_column_major_slice(&sp.ya, na, 1),
+            -1.0,
+            Par::Seq,
+        );
+        let perm = PermRef::new_checked(&sp.perm, &sp.perm_inv, ns);
+        let lu = faer::MatRef::from_column_major_slice(&sp.s, ns, ns);
+        let ys = MatMut::from_column_major_slice_mut(&mut sp.ys, ns, 1);
+        lu::solve::solve_in_place(lu, lu, perm, ys, Par::Seq, MemStack::new(&mut s.mem));
+        faer::linalg::matmul::matmul(
+            MatMut::from_column_major_slice_mut(&mut sp.ya, na, 1),
+            faer::Accum::Add,
+            faer::MatRef::from_column_major_slice(&sp.x, na, ns),
+            faer::MatRef::from_column_major_slice(&sp.ys, ns, 1),
+            -1.0,
+            Par::Seq,
+        );
+    }
+    // The step by position; `s.rhs` still holds the right-hand side.
+    sp.step.clear();
+    sp.step.resize(n, 0.0);
+    for (&pi, &v) in sp.pos_a.iter().zip(&sp.ya) {
+        sp.step[pi] = v;
+    }
+    for (&pi, &v) in sp.pos_s.iter().zip(&sp.ys) {
+        sp.step[pi] = v;
+    }
+    if !reuse && backward_error(w, m, s) > SPLIT_BACKWARD_ERROR {
+        // Not as good as one LU of the whole would be: that instead.
+        s.split.factored = false;
+        s.split.kx_valid = false;
+        return false;
+    }
+    std::mem::swap(&mut s.rhs, &mut s.split.step);
+    true
+}
+
+/// The largest normwise backward error a split step ([`solve_split`]) may
+/// have, `‖M Δλ − b‖∞ / (‖M‖∞ ‖Δλ‖∞ + ‖b‖∞)` for the whole Newton matrix `M`.
+/// An LU with partial pivoting leaves about `n ε` (2·10⁻¹³ for a thousand
+/// free rows); the Schur complement of a nearly singular `K` can leave more,
+/// and then the step is solved by one LU instead.
+const SPLIT_BACKWARD_ERROR: f64 = 1e-10;
+
+/// The normwise backward error of the split's step `s.split.step` for the
+/// whole phase-2 Newton matrix (as `solve_newton` builds it) and the
+/// right-hand side in `s.rhs`: one product with the matrix's rows, a small
+/// fraction of a factorization.
+fn backward_error(w: &[f64], m: usize, s: &SubspaceScratch) -> f64 {
+    let (x, b) = (&s.split.step, &s.rhs);
+    let (mut r_max, mut m_max) = (0.0f64, 0.0f64);
+    let x_max = x.iter().fold(0.0f64, |a, v| a.max(v.abs()));
+    let b_max = b.iter().fold(0.0f64, |a, v| a.max(v.abs()));
+    let mut i = 0;
+    let n = s.free.len();
+    while i < n {
+        let r = s.free[i];
+        // δ_r = 0: row r of W over the free columns, its diagonal shifted.
+        let row = &w[r * m..(r + 1) * m];
+        let (mut sum, mut abs) = (0.0, 0.0);
+        for (j, &cj) in s.free.iter().enumerate() {
+            let v = row[cj] * if j == i { 1.0 + s.shift } else { 1.0 };
+            sum += v * x[j];
+            abs += v.abs();
+        }
+        r_max = r_max.max((sum - b[i]).abs());
+        m_max = m_max.max(abs);
+        let Some(sl) = s.slide[r] else {
+            i += 1;
+            continue;
+        };
+        let (p, kappa, rho, mu, q) = (sl.p, sl.kappa, sl.rho, sl.mu, sl.q());
+        let (w1, w2) = (&w[(r + 1) * m..(r + 2) * m], &w[(r + 2) * m..(r + 3) * m]);
+        for k in 0..2 {
+            let (a, bk) = (kappa * rho * q[k][0], kappa * rho * q[k][1]);
+            let (mut sum, mut abs) = (0.0, 0.0);
+            for (j, &cj) in s.free.iter().enumerate() {
+                let mut v = a * w1[cj] + bk * w2[cj];
+                if j == i {
+                    v -= mu * p[k];
+                }
+                if j == i + 1 || j == i + 2 {
+                    let l = j - i - 1;
+                    v += if k == l { 1.0 } else { 0.0 } - kappa * q[k][l];
+                }
+                sum += v * x[j];
+                abs += v.abs();
+            }
+            r_max = r_max.max((sum - b[i + 1 + k]).abs());
+            m_max = m_max.max(abs);
+        }
+        i += 3;
+    }
+    let scale = m_max * x_max + b_max;
+    if scale > 0.0 { r_max / scale } else { 0.0 }
+}
+
+/// The equations `δ_r = 0` of the Newton matrix: for each free row `r_i`,
+/// row `r_i` of `W` over the free columns, where in phase 1 (`!full`) the
+/// column of a sliding normal also carries its tangential force (`μ P` along
+/// the tangential rows). Filled a column at a time (`W` is symmetric, so
+/// column `c_j` over the free rows is row `c_j` of `W`): contiguous writes,
+/// where a row at a time wrote one entry per column. Phase 2's tangential
+/// rows of sliding contacts are filled too and then overwritten by their own
+/// equations.
+fn delta_columns(w: &[f64], m: usize, s: &mut SubspaceScratch, full: bool) {
+    let n = s.free.len();
+    for (j, &cj) in s.free.iter().enumerate() {
+        let col = &mut s.mat[j * n..(j + 1) * n];
+        let wc = &w[cj * m..(cj + 1) * m];
+        match s.slide[cj].filter(|_| !full) {
+            Some(Slide { p, mu, .. }) => {
+                let (w1, w2) = (
+                    &w[(cj + 1) * m..(cj + 2) * m],
+                    &w[(cj + 2) * m..(cj + 3) * m],
+                );
+                for (c, &ri) in col.iter_mut().zip(&s.free) {
+                    *c = wc[ri] + mu * (p[0] * w1[ri] + p[1] * w2[ri]);
+                }
+                // The diagonal shifted: a damped step (see NEWTON_SHIFTS).
+                col[j] += wc[cj] * s.shift;
+            }
+            None => {
+                for (c, &ri) in col.iter_mut().zip(&s.free) {
+                    *c = wc[ri];
+                }
+                col[j] *= 1.0 + s.shift;
+            }
+        }
+    }
 }
 
 /// Puts every contact of the candidate back into its cone.
@@ -733,5 +1136,170 @@ fn project(rows: &[usize], mu: &[f64], s: &mut SubspaceScratch) {
         } else {
             l[r] = l[r].max(0.0);
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A contact problem for a Newton step.
+    struct Problem {
+        w: Vec<f64>,
+        rows: Vec<usize>,
+        mu: Vec<f64>,
+        lambda: Vec<f64>,
+        delta: Vec<f64>,
+    }
+
+    /// A random symmetric positive definite `W` (`B Bᵀ + I/10`), forces and
+    /// `δ` for `contacts` friction contacts and two frictionless ones.
+    fn problem(seed: u64, contacts: usize) -> Problem {
+        let mut state = seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1;
+        let mut next = move || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            (state >> 11) as f64 / (1u64 << 53) as f64 * 2.0 - 1.0
+        };
+        let mut rows: Vec<usize> = (0..contacts).map(|c| 3 * c).collect();
+        rows.extend([3 * contacts, 3 * contacts + 1, 3 * contacts + 2]);
+        let m = 3 * contacts + 2;
+        let b: Vec<f64> = (0..m * m).map(|_| next()).collect();
+        let mut w = vec![0.0; m * m];
+        for i in 0..m {
+            for j in 0..m {
+                let d: f64 = (0..m).map(|k| b[i * m + k] * b[j * m + k]).sum();
+                w[i * m + j] = d + if i == j { 0.1 } else { 0.0 };
+            }
+        }
+        let mut mu = vec![0.5; contacts];
+        mu.extend([0.0, 0.0]);
+        let lambda: Vec<f64> = (0..m)
+            .map(|i| {
+                if i % 3 == 0 {
+                    2.0 + next()
+                } else {
+                    2.0 * next()
+                }
+            })
+            .collect();
+        let delta: Vec<f64> = (0..m).map(|_| next()).collect();
+        Problem {
+            w,
+            rows,
+            mu,
+            lambda,
+            delta,
+        }
+    }
+
+    /// Phase 2's Newton step, by blocks ([`solve_split`]) and by one LU of
+    /// the whole matrix, on random problems with sticking and sliding
+    /// contacts: the same step, also in a chord step on the factors of the
+    /// step before.
+    #[test]
+    fn split_newton_step_equals_the_whole_lu() {
+        let mut checked = 0;
+        for seed in 1..40 {
+            let Problem {
+                w,
+                rows,
+                mu,
+                lambda,
+                delta,
+            } = problem(seed, 12);
+            let m = delta.len();
+            let mut steps = Vec::new();
+            for lu_only in [false, true] {
+                let mut s = SubspaceScratch::default();
+                s.split.lu_only = lu_only;
+                s.set_shift(NEWTON_SHIFTS[0]);
+                s.lambda.clone_from(&lambda);
+                s.delta.clone_from(&delta);
+                s.slide.resize(m, None);
+                s.kind.resize(m, Kind::Open);
+                s.hold.resize(m, None);
+                classify(&w, &rows, &mu, &mut s, true, false);
+                solve_newton(&w, m, &mut s, true, false).unwrap();
+                let first = s.rhs.clone();
+                if !lu_only {
+                    // The split's check of its own step: at round-off for
+                    // the step it solved, far above its bound for one entry
+                    // off by a thousandth of the step.
+                    std::mem::swap(&mut s.rhs, &mut s.split.step);
+                    let e = backward_error(&w, m, &s);
+                    assert!(e <= 1e-13, "seed {seed}: backward error {e:.3e}");
+                    let big = first.iter().fold(0.0f64, |a, v| a.max(v.abs()));
+                    let last = first.len() - 1;
+                    s.split.step[last] += 1e-3 * big;
+                    let e = backward_error(&w, m, &s);
+                    assert!(
+                        e > SPLIT_BACKWARD_ERROR,
+                        "seed {seed}: backward error {e:.3e} of a wrong step"
+                    );
+                    s.split.step[last] -= 1e-3 * big;
+                    std::mem::swap(&mut s.rhs, &mut s.split.step);
+                }
+                // A chord step: the same matrix, another right-hand side.
+                for d in &mut s.delta {
+                    *d *= 0.5;
+                }
+                solve_newton(&w, m, &mut s, true, true).unwrap();
+                let chord = s.rhs.clone();
+                let slides = s.free.iter().filter(|&&r| s.slide[r].is_some()).count();
+                let sticks = s.free.iter().filter(|&&r| s.kind[r] == Kind::Stick).count();
+                // The same classes, another sliding linearization: the split
+                // keeps K and X (no new factorization) and redoes the rest.
+                for &r in &s.free {
+                    s.lambda[r] *= 1.1;
+                }
+                let made = s.factorizations;
+                classify(&w, &rows, &mu, &mut s, true, true);
+                solve_newton(&w, m, &mut s, true, false).unwrap();
+                let kept = s.factorizations == made;
+                steps.push((
+                    first,
+                    chord,
+                    s.rhs.clone(),
+                    slides,
+                    sticks,
+                    s.split.factored,
+                    kept,
+                ));
+            }
+            let (split, whole) = (&steps[0], &steps[1]);
+            assert!(
+                split.5 && !whole.5,
+                "seed {seed}: the split was not used, or not only it"
+            );
+            assert!(
+                split.6,
+                "seed {seed}: the split refactored K on the same free rows"
+            );
+            if split.3 == 0 || split.4 == 0 {
+                continue;
+            }
+            checked += 1;
+            for (a, b) in [
+                (&split.0, &whole.0),
+                (&split.1, &whole.1),
+                (&split.2, &whole.2),
+            ] {
+                let scale = b.iter().fold(0.0f64, |x, v| x.max(v.abs()));
+                let err = a
+                    .iter()
+                    .zip(b)
+                    .fold(0.0f64, |x, (u, v)| x.max((u - v).abs()));
+                assert!(
+                    err <= 1e-9 * scale,
+                    "seed {seed}: the steps differ by {err:.3e} (scale {scale:.3e})"
+                );
+            }
+        }
+        assert!(
+            checked >= 10,
+            "only {checked} problems had sliding and sticking contacts"
+        );
     }
 }

@@ -50,9 +50,10 @@ pub struct LcpSettings {
     pub warm_start: bool,
     /// Most free rows a subspace step ([`LcpSolver::Subspace`]) factorizes:
     /// a step whose active set has more stops there and leaves the problem
-    /// to the sweeps. The LU costs `2/3 f³` for `f` free rows and cannot be
-    /// interrupted, so a caller with a time budget (the haptic tick) bounds
-    /// it here. Default `usize::MAX` (no bound).
+    /// to the sweeps. A factorization costs up to `2/3 f³` for `f` free rows
+    /// (an LU; phase 2's split costs less) and cannot be interrupted, so a
+    /// caller with a time budget (the haptic tick) bounds it here. Default
+    /// `usize::MAX` (no bound).
     pub subspace_max_rows: usize,
 }
 
@@ -107,8 +108,11 @@ pub struct LcpReport {
     pub iterations: usize,
     /// Subspace steps kept ([`LcpSolver::Subspace`]).
     pub subspace_steps: usize,
-    /// LU factorizations the subspace steps made (a chord step, or a step
-    /// that starts from the last solve's factors, makes none; see
+    /// Factorizations the subspace steps made: LUs of phase 1's Newton
+    /// matrices and Cholesky factorizations of phase 2's `δ = 0` block (a
+    /// chord step, a step that starts from the last solve's factors, or a
+    /// reclassification of phase 2 that keeps the free rows and which
+    /// contacts slide makes none; see
     /// [`super::LcpScratch::reuse_factorization`]).
     pub factorizations: usize,
     /// Whether the solve stopped at [`LcpSettings::max_iterations`] (or where
