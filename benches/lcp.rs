@@ -15,7 +15,9 @@
 //! Markdown table per solver and target: the median and largest sweeps, how
 //! many problems met the target within 100 sweeps and at all (within
 //! `--limit`), and the median and range of the milliseconds per problem
-//! (the median over `--repeats` runs of each).
+//! (the median over `--repeats` runs of each) and their sum over the
+//! problems (the time to solve each once: what the large problems cost,
+//! which the median over problems of very different sizes hides).
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -188,9 +190,9 @@ fn main() {
     }
     println!();
     println!(
-        "| solver | target | sweeps median | sweeps max | met in ≤ 100 sweeps | met | ms median | ms range |"
+        "| solver | target | sweeps median | sweeps max | met in ≤ 100 sweeps | met | ms median | ms range | ms total |"
     );
-    println!("|---|---|---|---|---|---|---|---|");
+    println!("|---|---|---|---|---|---|---|---|---|");
     for (name, solver) in SOLVERS {
         if !args.solvers.is_empty() && !args.solvers.iter().any(|s| s == name) {
             continue;
@@ -205,10 +207,11 @@ fn main() {
             let (lo, hi) = ms
                 .iter()
                 .fold((f64::INFINITY, 0.0f64), |(a, b), &x| (a.min(x), b.max(x)));
+            let total: f64 = ms.iter().sum();
             let within = runs.iter().filter(|r| r.within_100()).count();
             let met = runs.iter().filter(|r| r.met).count();
             println!(
-                "| {name} | {target:.0e} | {:.0} | {:.0} | {within}/{} | {met}/{} | {:.2} | {lo:.2}–{hi:.2} |",
+                "| {name} | {target:.0e} | {:.0} | {:.0} | {within}/{} | {met}/{} | {:.2} | {lo:.2}–{hi:.2} | {total:.1} |",
                 median(&mut sweeps),
                 sweeps.iter().copied().fold(0.0, f64::max),
                 runs.len(),
