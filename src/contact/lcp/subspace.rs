@@ -261,7 +261,54 @@ struct Split {
     lu_only: bool,
 }
 
+impl Split {
+    /// Room for the blocks of any split of `n` free rows (`|A| |S| ≤ n²/4`,
+    /// `|S| ≤ 2n/3`).
+    fn reserve(&mut self, n: usize) {
+        fn room<T>(v: &mut Vec<T>, cap: usize) {
+            v.reserve(cap.saturating_sub(v.len()));
+        }
+        let quarter = n * n / 4 + n;
+        room(&mut self.k, n * n);
+        room(&mut self.x, quarter);
+        room(&mut self.c, quarter);
+        room(&mut self.s, 4 * n * n / 9 + n);
+        for v in [&mut self.ya, &mut self.ys, &mut self.step] {
+            room(v, n);
+        }
+        for v in [
+            &mut self.pos_a,
+            &mut self.pos_s,
+            &mut self.pos_s_prev,
+            &mut self.kx_rows,
+            &mut self.perm,
+            &mut self.perm_inv,
+        ] {
+            room(v, n);
+        }
+    }
+}
+
 impl SubspaceScratch {
+    /// Room for a factorization of `n` free rows, whole or split, in every
+    /// buffer either uses: the two share the largest `n` seen, so that
+    /// neither allocates once the free rows have stopped growing, whichever
+    /// phase meets them first.
+    fn reserve(&mut self, n: usize) {
+        fn room<T>(v: &mut Vec<T>, cap: usize) {
+            v.reserve(cap.saturating_sub(v.len()));
+        }
+        room(&mut self.mat, n * n);
+        room(&mut self.rhs, n);
+        room(&mut self.perm, n);
+        room(&mut self.perm_inv, n);
+        self.split.reserve(n);
+        self.mem.resize(
+            workspace(n).unaligned_bytes_required(),
+            MaybeUninit::uninit(),
+        );
+    }
+
     /// Drops the factors a step could start from.
     pub(super) fn forget(&mut self) {
         self.lu_free.clear();
@@ -707,10 +754,13 @@ fn solve_newton(
     full: bool,
     reuse: bool,
 ) -> Option<()> {
+    let n = s.free.len();
+    if !reuse {
+        s.reserve(n);
+    }
     if full && solve_split(w, m, s, reuse) {
         return s.rhs.iter().all(|v| v.is_finite()).then_some(());
     }
-    let n = s.free.len();
     if !reuse {
         s.mat.clear();
         s.mat.resize(n * n, 0.0);
@@ -757,11 +807,10 @@ fn solve_newton(
         }
         i += 3;
     }
-    let req = lu::factor::lu_in_place_scratch::<usize, f64>(n, n, Par::Seq, Default::default()).or(
-        lu::solve::solve_in_place_scratch::<usize, f64>(n, 1, Par::Seq),
+    s.mem.resize(
+        workspace(n).unaligned_bytes_required(),
+        MaybeUninit::uninit(),
     );
-    s.mem
-        .resize(req.unaligned_bytes_required(), MaybeUninit::uninit());
     if !reuse {
         s.factorizations += 1;
         s.perm.clear();
@@ -785,6 +834,24 @@ fn solve_newton(
     s.rhs.iter().all(|v| v.is_finite()).then_some(())
 }
 
+/// faer's workspace for any factorization and solve of `n` free rows,
+/// whole or split: sized by `n` alone, so that it grows only with `n`.
+fn workspace(n: usize) -> faer::dyn_stack::StackReq {
+    lu::factor::lu_in_place_scratch::<usize, f64>(n, n, Par::Seq, Default::default())
+        .or(lu::solve::solve_in_place_scratch::<usize, f64>(
+            n,
+            1,
+            Par::Seq,
+        ))
+        .or(
+            faer::linalg::cholesky::llt::factor::cholesky_in_place_scratch::<f64>(
+                n,
+                Par::Seq,
+                Default::default(),
+            ),
+        )
+}
+
 /// Phase 2's Newton step by blocks ([`Split`]) into `s.rhs`: factors `K`,
 /// `X` and the Schur complement unless `reuse` (a chord step on the factors
 /// of the same free rows). Returns false where it did not solve: `K` not
@@ -799,14 +866,6 @@ fn solve_split(w: &[f64], m: usize, s: &mut SubspaceScratch, reuse: bool) -> boo
     if !reuse {
         sp.factored = false;
         std::mem::swap(&mut sp.pos_s, &mut sp.pos_s_prev);
-        for v in [
-            &mut sp.pos_a,
-            &mut sp.pos_s,
-            &mut sp.pos_s_prev,
-            &mut sp.kx_rows,
-        ] {
-            v.reserve(n.saturating_sub(v.len()));
-        }
         sp.pos_a.clear();
         sp.pos_s.clear();
         let mut i = 0;
@@ -821,43 +880,11 @@ fn solve_split(w: &[f64], m: usize, s: &mut SubspaceScratch, reuse: bool) -> boo
         }
     }
     let (na, ns) = (sp.pos_a.len(), sp.pos_s.len());
-    // Workspace and blocks sized by `n = |A| + |S|`, not by the split, so
-    // that a step whose split differs from every one before on as many free
-    // rows allocates nothing (`|A| |S| ≤ n²/4`, `|S| ≤ 2n/3`).
-    let req = faer::linalg::cholesky::llt::factor::cholesky_in_place_scratch::<f64>(
-        n,
-        Par::Seq,
-        Default::default(),
-    )
-    .or(lu::factor::lu_in_place_scratch::<usize, f64>(
-        n,
-        n,
-        Par::Seq,
-        Default::default(),
-    ))
-    .or(lu::solve::solve_in_place_scratch::<usize, f64>(
-        n,
-        1,
-        Par::Seq,
-    ));
-    s.mem
-        .resize(req.unaligned_bytes_required(), MaybeUninit::uninit());
+    s.mem.resize(
+        workspace(n).unaligned_bytes_required(),
+        MaybeUninit::uninit(),
+    );
     if !reuse {
-        let quarter = n * n / 4 + n;
-        for (v, cap) in [
-            (&mut sp.k, n * n),
-            (&mut sp.x, quarter),
-            (&mut sp.c, quarter),
-            (&mut sp.s, 4 * n * n / 9 + n),
-        ] {
-            v.reserve(cap.saturating_sub(v.len()));
-        }
-        for v in [&mut sp.ya, &mut sp.ys, &mut sp.step] {
-            v.reserve(n.saturating_sub(v.len()));
-        }
-        for v in [&mut sp.perm, &mut sp.perm_inv] {
-            v.reserve(n.saturating_sub(v.len()));
-        }
         let keep = sp.kx_valid
             && sp.kx_shift == s.shift
             && sp.kx_rows == s.free
