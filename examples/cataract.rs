@@ -410,6 +410,12 @@ fn print_summary(s: &HeadlessSummary, params: &CataractParams, recording: Option
         "max penetration at step end {:.2e} m, lens-sclera {:.2e} m (tolerance {:.2e} m)",
         s.max_penetration, s.max_tissue_penetration, s.tolerance
     );
+    let [(lens, lens_all), (all, all_all)] = s.inverted_at_end;
+    println!(
+        "elements flat or inverted at the end: lens {lens} of {lens_all}, the eye {} of {}",
+        all - lens,
+        all_all - lens_all
+    );
 }
 
 fn main() -> ExitCode {

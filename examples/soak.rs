@@ -68,6 +68,10 @@ fn main() -> ExitCode {
     );
     println!("  steps with NaN: {}", s.nan_steps);
     println!(
+        "  elements flat or inverted at a step's end: at most {}, {} at the last",
+        s.inverted.0, s.inverted.1
+    );
+    println!(
         "  CG rescues: {}, worst CG: {} iterations, unconverged: {}",
         s.rescues, s.worst_cg, s.unconverged
     );

@@ -56,6 +56,9 @@ pub struct HeadlessSummary {
     pub tolerance: f64,
     /// Lens centre at the start and at the end.
     pub lens_center: (bevy_soft_tissue::math::Vec3, bevy_soft_tissue::math::Vec3),
+    /// Elements flat or inverted at the end (`DeformableBody::inverted_elements`)
+    /// and the elements there are: the lens's, then all bodies'.
+    pub inverted_at_end: [(usize, usize); 2],
     /// Largest speed of the lens's centre of mass (mean node velocity) seen, m/s:
     /// a stability check, as the vectis itself moves at about 1 mm/s.
     pub max_lens_speed: f64,
@@ -363,6 +366,12 @@ pub fn run_headless_recording(
         }
     }
     let end = lens_q.iter(app.world()).next().map(centre).unwrap_or(start);
+    let count = |b: &SoftBody| (b.inverted_elements(), b.elements().len());
+    let lens_inverted = lens_q.iter(app.world()).next().map_or((0, 0), count);
+    let all_inverted = body_q
+        .iter(app.world())
+        .map(count)
+        .fold((0, 0), |(a, b), (c, d)| (a + c, b + d));
     let med = |v: &mut Vec<f64>| {
         if v.is_empty() {
             return f64::NAN;
@@ -390,6 +399,7 @@ pub fn run_headless_recording(
         max_penetration: max_pen,
         tolerance,
         lens_center: (start, end),
+        inverted_at_end: [lens_inverted, all_inverted],
         max_lens_speed,
         mean_ms_50_90: band_sum.map(|x| x / band_steps),
         mean_ms_jam: jam_sum.map(|x| x / jam_steps),

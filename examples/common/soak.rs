@@ -30,6 +30,9 @@ pub struct SoakSummary {
     pub worst_cg: usize,
     /// Steps where a body's CG did not converge.
     pub unconverged: usize,
+    /// Elements flat or inverted (`DeformableBody::inverted_elements`, both
+    /// bodies): the most at a step's end, and at the last step's end.
+    pub inverted: (usize, usize),
     /// The first error a step returned, if any.
     pub error: Option<String>,
 }
@@ -131,6 +134,8 @@ pub fn run_soak(
             .map(|c| -c.gap)
             .fold(0.0, f64::max);
         s.max_penetration = s.max_penetration.max(deepest);
+        let inverted = scene.bodies.iter().map(|b| b.inverted_elements()).sum();
+        s.inverted = (s.inverted.0.max(inverted), inverted);
         progress(step);
     }
     Ok(s)

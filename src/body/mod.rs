@@ -417,6 +417,21 @@ impl DeformableBody {
             .sum()
     }
 
+    /// Elements flat or inverted at the current positions (`det F ≤ 0`):
+    /// tissue pressed through itself, which the co-rotated model pushes back
+    /// (see "Inverted elements" above) but which a scene can also leave
+    /// behind, held by its neighbours. A check of the local deformation, not
+    /// used by the step; one pass over the elements.
+    pub fn inverted_elements(&self) -> usize {
+        self.elements
+            .iter()
+            .filter(|e| {
+                let xe = e.nodes.map(|n| self.x[n]);
+                e.deformation_gradient(&xe).determinant() <= 0.0
+            })
+            .count()
+    }
+
     /// Kinetic energy.
     pub fn kinetic_energy(&self) -> f64 {
         self.v
