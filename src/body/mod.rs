@@ -419,7 +419,7 @@ impl DeformableBody {
 
     /// Elements flat or inverted at the current positions (`det F ≤ 0`):
     /// tissue pressed through itself, which the co-rotated model pushes back
-    /// (see "Inverted elements" above) but which a scene can also leave
+    /// (see the module docs, "Inverted elements") but which a scene can leave
     /// behind, held by its neighbours. A check of the local deformation, not
     /// used by the step; one pass over the elements.
     pub fn inverted_elements(&self) -> usize {
