@@ -40,7 +40,13 @@
 //! scene's squeezed lens, up to the 200-iteration limit). Keeping the last
 //! rotation outright (no turning while inverted) is continuous too, but an
 //! element that turns while inverted then carries a wrong rotation and a large
-//! spurious force: it shot the coarse lens out of the eye at 87 mm/s.
+//! spurious force: it shot the coarse lens out of the eye at 87 mm/s. The
+//! nearest candidate is kept only where the two smallest singular values are
+//! close enough to cross ([`crate::math::SINGULAR_VALUES_CLOSE`]); elsewhere
+//! the plain sign fix, which pushes the element back across its thinnest
+//! direction: the nearest candidate there left elements of the delivered lens
+//! inverted at rest, held by their neighbours
+//! ([`DeformableBody::inverted_elements`] counts them).
 //! [`DeformableBody::elastic_forces`] and [`DeformableBody::elastic_energy`]
 //! have no history and use the plain sign fix.
 //!

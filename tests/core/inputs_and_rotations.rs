@@ -580,6 +580,33 @@ fn inverted_rotation_follows_the_last_one() {
     assert!((polar_rotation_near(&g, &Mat3::identity()) - turn).norm() < 1e-12);
 }
 
+/// Where the smallest singular value of an inverted `F` is well below the
+/// others, the rotation is the plain sign fix (the element pushed back across
+/// its thinnest direction) even when the last rotation was another candidate:
+/// the nearest candidate there could leave the element inverted.
+#[test]
+fn an_inverted_element_with_one_thin_direction_takes_the_plain_sign_fix() {
+    use bevy_soft_tissue::math::{SINGULAR_VALUES_CLOSE, polar_rotation_near};
+    let turn = *Rotation3::from_axis_angle(&Unit::new_normalize(v3(1.0, 2.0, 0.5)), 0.7).matrix();
+    // Singular values 2, 1 and 0.2, inverted along the thin one.
+    let f = turn * Mat3::from_diagonal(&v3(2.0, 1.0, -0.2));
+    const { assert!(0.2 < SINGULAR_VALUES_CLOSE * 1.0) };
+    let plain = polar_rotation(&f);
+    assert!((plain - turn).norm() < 1e-12);
+    // The candidate that flips the largest direction instead, as the last rotation.
+    let other = turn * Mat3::from_diagonal(&v3(-1.0, 1.0, -1.0));
+    assert!((other.determinant() - 1.0).abs() < 1e-12);
+    let r = polar_rotation_near(&f, &other);
+    assert!(
+        (r - plain).norm() < 1e-12,
+        "the nearest candidate was kept: {:.1}° from the plain sign fix",
+        angle(plain.transpose() * r)
+    );
+    // Rᵀ F then has the thin direction inverted only.
+    let d = r.transpose() * f;
+    assert!(d[(0, 0)] > 0.0 && d[(1, 1)] > 0.0 && d[(2, 2)] < 0.0, "{d}");
+}
+
 /// The meshes shipped in `assets/` are what `examples/write_meshes.rs` writes
 /// from the generators (the paper-size lens and the default scene's eye).
 #[test]
