@@ -137,13 +137,48 @@ struct Slide {
 }
 
 impl Slide {
-    /// `Q = I − P Pᵀ`, the projection across the slip direction.
-    fn q(&self) -> [[f64; 2]; 2] {
+    /// Tangential row `k` (0 or 1) of the linearized `λ_t − μ λ_n P = 0`:
+    /// `(I − κQ) Δλ_t − μ P Δλ_n + κρ Q W_t· Δλ = −(λ_t − μ λ_n P)`,
+    /// `Q = I − P Pᵀ`.
+    fn row(&self, k: usize) -> SlideRow {
         let p = self.p;
-        [
+        let q = [
             [1.0 - p[0] * p[0], -p[0] * p[1]],
             [-p[1] * p[0], 1.0 - p[1] * p[1]],
-        ]
+        ];
+        let id = |l: usize| if k == l { 1.0 } else { 0.0 };
+        SlideRow {
+            a: self.kappa * self.rho * q[k][0],
+            b: self.kappa * self.rho * q[k][1],
+            own: [
+                -self.mu * p[k],
+                id(0) - self.kappa * q[k][0],
+                id(1) - self.kappa * q[k][1],
+            ],
+        }
+    }
+
+    /// The right-hand side of row `k`, `−(λ_t − μ λ_n⁺ P)`, at the forces
+    /// `lambda` of the contact whose normal row is `r`.
+    fn rhs(&self, lambda: &[f64], r: usize, k: usize) -> f64 {
+        -(lambda[r + 1 + k] - self.mu * lambda[r].max(0.0) * self.p[k])
+    }
+}
+
+/// One tangential row of a sliding contact's Newton equations
+/// ([`Slide::row`]): `a W_{r+1,c} + b W_{r+2,c}` in every free column `c`,
+/// plus `own` in the contact's own columns (its normal, then its two
+/// tangents).
+struct SlideRow {
+    a: f64,
+    b: f64,
+    own: [f64; 3],
+}
+
+impl SlideRow {
+    /// The `W` part in column `c`.
+    fn w(&self, w1: &[f64], w2: &[f64], c: usize) -> f64 {
+        self.a * w1[c] + self.b * w2[c]
     }
 }
 
@@ -261,13 +296,15 @@ struct Split {
     lu_only: bool,
 }
 
+/// Capacity for at least `cap` entries in `v`.
+fn room<T>(v: &mut Vec<T>, cap: usize) {
+    v.reserve(cap.saturating_sub(v.len()));
+}
+
 impl Split {
     /// Room for the blocks of any split of `n` free rows (`|A| |S| ≤ n²/4`,
     /// `|S| ≤ 2n/3`).
     fn reserve(&mut self, n: usize) {
-        fn room<T>(v: &mut Vec<T>, cap: usize) {
-            v.reserve(cap.saturating_sub(v.len()));
-        }
         let quarter = n * n / 4 + n;
         room(&mut self.k, n * n);
         room(&mut self.x, quarter);
@@ -295,9 +332,6 @@ impl SubspaceScratch {
     /// neither allocates once the free rows have stopped growing, whichever
     /// phase meets them first.
     fn reserve(&mut self, n: usize) {
-        fn room<T>(v: &mut Vec<T>, cap: usize) {
-            v.reserve(cap.saturating_sub(v.len()));
-        }
         room(&mut self.mat, n * n);
         room(&mut self.rhs, n);
         room(&mut self.perm, n);
@@ -781,36 +815,25 @@ fn solve_newton(
             i += 1;
             continue;
         };
-        // Tangential rows i+1, i+2 (free rows r+1, r+2):
-        // (I − κQ) Δλ_t − μ P Δλ_n + κρ Q W_t· Δλ = −(λ_t − μ λ_n P).
-        let Slide {
-            p, kappa, rho, mu, ..
-        } = sl;
-        let q = sl.q();
+        // Tangential rows i+1, i+2 (free rows r+1, r+2), see `Slide::row`.
         let (w1, w2) = (&w[(r + 1) * m..(r + 2) * m], &w[(r + 2) * m..(r + 3) * m]);
         for k in 0..2 {
             let ik = i + 1 + k;
-            s.rhs[ik] = -(s.lambda[r + 1 + k] - mu * s.lambda[r].max(0.0) * p[k]);
+            s.rhs[ik] = sl.rhs(&s.lambda, r, k);
             if reuse {
                 continue;
             }
-            let (a, b) = (kappa * rho * q[k][0], kappa * rho * q[k][1]);
+            let row = sl.row(k);
             for (j, &cj) in s.free.iter().enumerate() {
-                s.mat[j * n + ik] = a * w1[cj] + b * w2[cj];
+                s.mat[j * n + ik] = row.w(w1, w2, cj);
             }
             // The λ part: columns i (λ_n), i+1, i+2 (λ_t).
-            s.mat[i * n + ik] -= mu * p[k];
-            for l in 0..2 {
-                let id = if k == l { 1.0 } else { 0.0 };
-                s.mat[(i + 1 + l) * n + ik] += id - kappa * q[k][l];
+            for (l, v) in row.own.iter().enumerate() {
+                s.mat[(i + l) * n + ik] += v;
             }
         }
         i += 3;
     }
-    s.mem.resize(
-        workspace(n).unaligned_bytes_required(),
-        MaybeUninit::uninit(),
-    );
     if !reuse {
         s.factorizations += 1;
         s.perm.clear();
@@ -857,6 +880,8 @@ fn workspace(n: usize) -> faer::dyn_stack::StackReq {
 /// of the same free rows). Returns false where it did not solve: `K` not
 /// positive definite in floating point, a chord step on factors it did not
 /// make, or [`Split::lu_only`]; the caller then solves by one LU.
+/// Its buffers and faer's workspace have room already
+/// ([`SubspaceScratch::reserve`], before every factorization).
 fn solve_split(w: &[f64], m: usize, s: &mut SubspaceScratch, reuse: bool) -> bool {
     if s.split.lu_only || reuse && !s.split.factored {
         return false;
@@ -880,10 +905,6 @@ fn solve_split(w: &[f64], m: usize, s: &mut SubspaceScratch, reuse: bool) -> boo
         }
     }
     let (na, ns) = (sp.pos_a.len(), sp.pos_s.len());
-    s.mem.resize(
-        workspace(n).unaligned_bytes_required(),
-        MaybeUninit::uninit(),
-    );
     if !reuse {
         let keep = sp.kx_valid
             && sp.kx_shift == s.shift
@@ -949,24 +970,19 @@ fn solve_split(w: &[f64], m: usize, s: &mut SubspaceScratch, reuse: bool) -> boo
             let Some(sl) = s.slide[r] else {
                 continue;
             };
-            let (p, kappa, rho, mu, q) = (sl.p, sl.kappa, sl.rho, sl.mu, sl.q());
             let (w1, w2) = (&w[(r + 1) * m..(r + 2) * m], &w[(r + 2) * m..(r + 3) * m]);
             for k in 0..2 {
-                let row = is + k;
-                let (a, b) = (kappa * rho * q[k][0], kappa * rho * q[k][1]);
+                let (row, eq) = (is + k, sl.row(k));
                 let col = &mut sp.c[row * na..(row + 1) * na];
                 for (c, &pj) in col.iter_mut().zip(&sp.pos_a) {
-                    let cj = s.free[pj];
-                    *c = a * w1[cj] + b * w2[cj];
+                    *c = eq.w(w1, w2, s.free[pj]);
                 }
-                col[ia] -= mu * p[k];
+                col[ia] += eq.own[0];
                 for (js, &pj) in sp.pos_s.iter().enumerate() {
-                    let cj = s.free[pj];
-                    sp.s[js * ns + row] = a * w1[cj] + b * w2[cj];
+                    sp.s[js * ns + row] = eq.w(w1, w2, s.free[pj]);
                 }
                 for l in 0..2 {
-                    let id = if k == l { 1.0 } else { 0.0 };
-                    sp.s[(is + l) * ns + row] += id - kappa * q[k][l];
+                    sp.s[(is + l) * ns + row] += eq.own[1 + l];
                 }
             }
             is += 2;
@@ -1003,9 +1019,9 @@ fn solve_split(w: &[f64], m: usize, s: &mut SubspaceScratch, reuse: bool) -> boo
     s.rhs.clear();
     s.rhs.extend(s.free.iter().map(|&r| -s.delta[r]));
     for (i, &r) in s.free.iter().enumerate() {
-        if let Some(Slide { p, mu, .. }) = s.slide[r] {
+        if let Some(sl) = s.slide[r] {
             for k in 0..2 {
-                s.rhs[i + 1 + k] = -(s.lambda[r + 1 + k] - mu * s.lambda[r].max(0.0) * p[k]);
+                s.rhs[i + 1 + k] = sl.rhs(&s.lambda, r, k);
             }
         }
     }
@@ -1091,19 +1107,14 @@ fn backward_error(w: &[f64], m: usize, s: &SubspaceScratch) -> f64 {
             i += 1;
             continue;
         };
-        let (p, kappa, rho, mu, q) = (sl.p, sl.kappa, sl.rho, sl.mu, sl.q());
         let (w1, w2) = (&w[(r + 1) * m..(r + 2) * m], &w[(r + 2) * m..(r + 3) * m]);
         for k in 0..2 {
-            let (a, bk) = (kappa * rho * q[k][0], kappa * rho * q[k][1]);
+            let eq = sl.row(k);
             let (mut sum, mut abs) = (0.0, 0.0);
             for (j, &cj) in s.free.iter().enumerate() {
-                let mut v = a * w1[cj] + bk * w2[cj];
-                if j == i {
-                    v -= mu * p[k];
-                }
-                if j == i + 1 || j == i + 2 {
-                    let l = j - i - 1;
-                    v += if k == l { 1.0 } else { 0.0 } - kappa * q[k][l];
+                let mut v = eq.w(w1, w2, cj);
+                if (i..i + 3).contains(&j) {
+                    v += eq.own[j - i];
                 }
                 sum += v * x[j];
                 abs += v.abs();
