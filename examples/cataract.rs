@@ -17,7 +17,8 @@
 //! at the predicted positions, `ContactSettings::predict`),
 //! `--no-rigid-modes` (`ContactSettings::rigid_modes` off),
 //! `--consistency-tolerance X` (`ContactSettings::consistency_tolerance`),
-//! `--energy-tolerance X` (`ContactSettings::energy_tolerance`) — accuracy
+//! `--energy-tolerance X` (`ContactSettings::energy_tolerance`),
+//! `--cg-tolerance X` (`CgSettings::tolerance` of both bodies) — accuracy
 //! against time; `--lcp pgs|block|nncg|subspace` (the contact solver, `LcpSolver`);
 //! `--record-lcp DIR` writes each step's first-pass contact problem with at
 //! least `--record-min-contacts N` (default 91) contacts to `DIR`, for the
@@ -111,6 +112,10 @@ struct Args {
     /// `ContactSettings::energy_tolerance` (default: off).
     #[arg(long)]
     energy_tolerance: Option<f64>,
+    /// `CgSettings::tolerance` of both bodies, the relative residual at which
+    /// the free motion's conjugate gradient stops (default 1e-6).
+    #[arg(long)]
+    cg_tolerance: Option<f64>,
     /// The contact solver: pgs, block, nncg or subspace.
     #[arg(long, default_value = "subspace", value_parser = common::args::lcp_solver)]
     lcp: LcpSolver,
@@ -163,15 +168,24 @@ fn compliance(v: &str) -> Result<ComplianceMode, String> {
     })
 }
 
+/// Both bodies' settings from the arguments.
+fn body_settings(args: &Args) -> BodySettings {
+    let mut body = BodySettings {
+        preconditioner: args.preconditioner,
+        ..Default::default()
+    };
+    if let Some(t) = args.cg_tolerance {
+        body.cg.tolerance = t;
+    }
+    body
+}
+
 fn headless(args: &Args, params: &CataractParams, config: SoftTissueConfig) -> ExitCode {
     println!(
         "cataract scene, headless: {} steps of {:.4} s, preconditioner {:?}, compliance {:?}, GPU {:?}",
         args.steps, config.timestep, args.preconditioner, args.compliance, config.gpu
     );
-    let body = BodySettings {
-        preconditioner: args.preconditioner,
-        ..Default::default()
-    };
+    let body = body_settings(args);
     let recording = args.record.as_ref().map(|dir| Recording {
         dir: dir.clone(),
         min_contacts: args.record_min,
@@ -469,7 +483,7 @@ fn main() -> ExitCode {
         return headless(&args, &params, config);
     }
     #[cfg(feature = "viewer")]
-    viewer::run(params, config, args.preconditioner, args.haptics);
+    viewer::run(params, config, body_settings(&args), args.haptics);
     ExitCode::SUCCESS
 }
 
@@ -567,7 +581,7 @@ mod viewer {
     pub fn run(
         params: CataractParams,
         config: SoftTissueConfig,
-        preconditioner: PreconditionerKind,
+        body: BodySettings,
         haptics: bool,
     ) {
         let (er, _) = incision_frame(&params);
@@ -584,13 +598,7 @@ mod viewer {
         }))
         .add_plugins(EguiPlugin::default())
         .add_plugins(SoftTissuePlugins::default().with_config(config))
-        .add_plugins(CataractScenePlugin {
-            params,
-            body: BodySettings {
-                preconditioner,
-                ..Default::default()
-            },
-        })
+        .add_plugins(CataractScenePlugin { params, body })
         .insert_resource(ClearColor(Color::srgb(0.06, 0.07, 0.09)))
         .insert_resource(Ui {
             preconditioner: 3,
