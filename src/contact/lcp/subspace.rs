@@ -776,6 +776,25 @@ fn classify(
     }
 }
 
+/// The Newton step's right-hand side over the free rows, into `s.rhs`:
+/// `−δ_r` for a row `δ_r = 0` (the normal row of a sliding contact too), and
+/// in phase 2 (`full`) the sliding contact's tangential rows, see
+/// [`Slide::rhs`].
+fn newton_rhs(s: &mut SubspaceScratch, full: bool) {
+    s.rhs.clear();
+    s.rhs.extend(s.free.iter().map(|&r| -s.delta[r]));
+    if !full {
+        return;
+    }
+    for (i, &r) in s.free.iter().enumerate() {
+        if let Some(sl) = s.slide.get(r).copied().flatten() {
+            for k in 0..2 {
+                s.rhs[i + 1 + k] = sl.rhs(&s.lambda, r, k);
+            }
+        }
+    }
+}
+
 /// Step 2: builds the Newton matrix over the free rows and solves it into
 /// `s.rhs`. Row `i` of the matrix is free row `r_i`'s equation: `δ_{r_i} = 0`,
 /// or for the tangential rows of a sliding contact the linearized
@@ -795,46 +814,34 @@ fn solve_newton(
     if full && solve_split(w, m, s, reuse) {
         return s.rhs.iter().all(|v| v.is_finite()).then_some(());
     }
+    newton_rhs(s, full);
     if !reuse {
         s.mat.clear();
         s.mat.resize(n * n, 0.0);
-    }
-    s.rhs.clear();
-    s.rhs.resize(n, 0.0);
-    if !reuse {
         delta_columns(w, m, s, full);
-    }
-    // Which contact's sliding data a tangential row belongs to: the normal row
-    // is the free row just before (r, r+1, r+2 are pushed together).
-    let mut i = 0;
-    while i < n {
-        let r = s.free[i];
-        // δ_r = 0, also for the normal row of a sliding contact.
-        s.rhs[i] = -s.delta[r];
-        let Some(sl) = s.slide.get(r).copied().flatten().filter(|_| full) else {
-            i += 1;
-            continue;
-        };
-        // Tangential rows i+1, i+2 (free rows r+1, r+2), see `Slide::row`.
-        let (w1, w2) = (&w[(r + 1) * m..(r + 2) * m], &w[(r + 2) * m..(r + 3) * m]);
-        for k in 0..2 {
-            let ik = i + 1 + k;
-            s.rhs[ik] = sl.rhs(&s.lambda, r, k);
-            if reuse {
+        // The tangential rows i+1, i+2 of a sliding contact (free rows r+1,
+        // r+2, pushed with its normal row r), see `Slide::row`.
+        let mut i = 0;
+        while i < n {
+            let r = s.free[i];
+            let Some(sl) = s.slide.get(r).copied().flatten().filter(|_| full) else {
+                i += 1;
                 continue;
+            };
+            let (w1, w2) = (&w[(r + 1) * m..(r + 2) * m], &w[(r + 2) * m..(r + 3) * m]);
+            for k in 0..2 {
+                let ik = i + 1 + k;
+                let row = sl.row(k);
+                for (j, &cj) in s.free.iter().enumerate() {
+                    s.mat[j * n + ik] = row.w(w1, w2, cj);
+                }
+                // The λ part: columns i (λ_n), i+1, i+2 (λ_t).
+                for (l, v) in row.own.iter().enumerate() {
+                    s.mat[(i + l) * n + ik] += v;
+                }
             }
-            let row = sl.row(k);
-            for (j, &cj) in s.free.iter().enumerate() {
-                s.mat[j * n + ik] = row.w(w1, w2, cj);
-            }
-            // The λ part: columns i (λ_n), i+1, i+2 (λ_t).
-            for (l, v) in row.own.iter().enumerate() {
-                s.mat[(i + l) * n + ik] += v;
-            }
+            i += 3;
         }
-        i += 3;
-    }
-    if !reuse {
         s.factorizations += 1;
         s.perm.clear();
         s.perm.resize(n, 0);
@@ -1016,15 +1023,8 @@ fn solve_split(w: &[f64], m: usize, s: &mut SubspaceScratch, reuse: bool) -> boo
     // `−(λ_t − μ λ_n P)` on the tangential rows of the contacts sliding now:
     // in a chord step across solves a contact can have changed between
     // sticking and sliding), by the blocks of the factorization.
-    s.rhs.clear();
-    s.rhs.extend(s.free.iter().map(|&r| -s.delta[r]));
-    for (i, &r) in s.free.iter().enumerate() {
-        if let Some(sl) = s.slide[r] {
-            for k in 0..2 {
-                s.rhs[i + 1 + k] = sl.rhs(&s.lambda, r, k);
-            }
-        }
-    }
+    newton_rhs(s, true);
+    let sp = &mut s.split;
     sp.ya.clear();
     sp.ya.extend(sp.pos_a.iter().map(|&i| s.rhs[i]));
     sp.ys.clear();
