@@ -78,6 +78,15 @@ pub(super) struct Deflation {
     /// by node); `y_made` says it is this step's.
     y: Vec<[Vec3; 6]>,
     y_made: bool,
+    /// With node columns: `Qᵀ Y` at the nodes met so far in this step's
+    /// passes (`y_node[k]` valid where `y_stamp[k] == y_gen`), so a later
+    /// pass with the same factor reads them instead of the paths again.
+    y_node: Vec<[Vec3; 6]>,
+    y_stamp: Vec<u32>,
+    y_gen: u32,
+    /// Tests: rows of `V` read from node columns' paths so far.
+    #[cfg(test)]
+    pub(super) path_reads: usize,
     /// Tests: [`COLUMN_PATH_SHARE`] replaced.
     pub(super) path_share: Option<f64>,
     /// Per pass: the rows this body touches, with their `U` and `V` rows.
@@ -102,6 +111,12 @@ impl Deflation {
         }
         self.key = Some(key);
         self.active = false;
+        self.y_gen = self.y_gen.wrapping_add(1);
+        if self.y_gen == 0 {
+            // Wrapped: no stamp may look valid.
+            self.y_stamp.fill(0);
+            self.y_gen = 1;
+        }
         // Only bodies with every node free come here (see `completes`).
         let n = body.num_nodes();
         let x = body.positions();
@@ -181,8 +196,9 @@ impl Deflation {
     }
 
     /// `Qᵀ Y` at original node `k` (the factor's frame): from `k`'s node
-    /// column, `Z_kᵀ D⁻¹ F` along its path, when `columns`; else from
-    /// `L⁻ᵀ D⁻¹ F`, one backward sweep of the six made once per step.
+    /// column, `Z_kᵀ D⁻¹ F` along its path, when `columns` (kept for the
+    /// step's later passes); else from `L⁻ᵀ D⁻¹ F`, one backward sweep of
+    /// the six made once per step.
     fn y_at(
         &mut self,
         view: &FactorView<'_>,
@@ -190,9 +206,25 @@ impl Deflation {
         k: usize,
     ) -> [Vec3; 6] {
         if let Some(cache) = columns {
+            let n = self.z.len();
+            if self.y_stamp.len() != n {
+                self.y_stamp.clear();
+                self.y_stamp.resize(n, 0);
+                self.y_node.resize(n, [Vec3::zeros(); 6]);
+            }
+            if self.y_stamp[k] == self.y_gen {
+                return self.y_node[k];
+            }
             let cl = cache.cols[cache.col_of_node[k] as usize];
             let range = cl.start..cl.start + cl.len;
-            return path_products(&cache.blocks[range.clone()], &cache.paths[range], &self.df);
+            let y = path_products(&cache.blocks[range.clone()], &cache.paths[range], &self.df);
+            #[cfg(test)]
+            {
+                self.path_reads += 1;
+            }
+            self.y_node[k] = y;
+            self.y_stamp[k] = self.y_gen;
+            return y;
         }
         if !self.y_made {
             self.y.clear();

@@ -365,6 +365,75 @@ mod tests {
         body
     }
 
+    /// A later pass of the same step reads the completion's rows of `V` at
+    /// the nodes an earlier pass met instead of their paths again, and gets
+    /// the `W` of a build that reads every path (to round-off: the Gram
+    /// blocks are summed in the order of the cache's columns); a new step
+    /// reads them anew.
+    #[test]
+    fn later_passes_reuse_the_completions_node_rows() {
+        let mut body = twisted_lens();
+        let n = body.num_nodes();
+        let h = 0.01;
+        let m = 12;
+        // Pass 1 on nodes 0, 7, 14, ...; pass 2 shares half of them.
+        let make = |offset: usize| {
+            let mut e: Vec<JacEntry> = (0..m)
+                .map(|row| JacEntry {
+                    node: (((row + offset) * 7) % n) as u32,
+                    row: row as u32,
+                    h: Vec3::new(test_value(row, 1), test_value(row, 2), test_value(row, 3)),
+                    j: Vec3::zeros(),
+                })
+                .collect();
+            e.sort_by_key(|e| (e.node, e.row));
+            e
+        };
+        let build = |comp: &mut BodyCompliance, body: &DeformableBody, e: &mut Vec<JacEntry>| {
+            let mut prefetch = ColumnPrefetch::default();
+            let mut w = vec![0.0; m * m];
+            comp.accumulate(
+                body,
+                &mut prefetch,
+                ComplianceMode::Factorized,
+                h,
+                e,
+                &mut w,
+                m,
+                None,
+            )
+            .unwrap();
+            w
+        };
+        let mut comp = BodyCompliance::new();
+        comp.rigid_modes = true;
+        comp.deflation.path_share = Some(f64::INFINITY);
+        let (mut first, mut second) = (make(0), make(m / 2));
+        build(&mut comp, &body, &mut first);
+        assert!(comp.deflation.active);
+        assert_eq!(comp.deflation.path_reads, m, "one path per node");
+        let w2 = build(&mut comp, &body, &mut second);
+        assert_eq!(
+            comp.deflation.path_reads,
+            m + m / 2,
+            "only the nodes new in the second pass read their paths"
+        );
+        let mut fresh = BodyCompliance::new();
+        fresh.rigid_modes = true;
+        fresh.deflation.path_share = Some(f64::INFINITY);
+        let w_fresh = build(&mut fresh, &body, &mut make(m / 2));
+        assert_eq!(fresh.deflation.path_reads, m);
+        let scale = w_fresh.iter().map(|v| v.abs()).fold(0.0, f64::max);
+        assert!(scale > 0.0);
+        for (a, b) in w2.iter().zip(&w_fresh) {
+            assert!((a - b).abs() <= 1e-12 * scale, "{a:e} against {b:e}");
+        }
+        // A new step (same factor, new matrix): every node is read anew.
+        body.step(0.01).unwrap();
+        build(&mut comp, &body, &mut make(m / 2));
+        assert_eq!(comp.deflation.path_reads, 2 * m + m / 2);
+    }
+
     /// `(L D Lᵀ)⁻¹` of `f` densely, in original numbering (`warp` applied
     /// as `Q (·) Qᵀ` when given).
     fn dense_inverse(f: &LdltFactor, warp: Option<&[Mat3]>) -> DMatrix<f64> {
