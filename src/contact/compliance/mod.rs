@@ -434,6 +434,69 @@ mod tests {
         assert_eq!(comp.deflation.path_reads, 2 * m + m / 2);
     }
 
+    /// A body whose rows of `W` are not contiguous (another body's rows
+    /// between them) gets exactly the entries it gets with its rows packed,
+    /// and leaves the rows between alone; with the rigid-mode completion and
+    /// without.
+    #[test]
+    fn rows_between_a_bodys_rows_stay_untouched() {
+        let body = twisted_lens();
+        let n = body.num_nodes();
+        let h = 0.01;
+        let k = 11;
+        let entries = |row_of: &dyn Fn(usize) -> u32| {
+            let mut e: Vec<JacEntry> = (0..2 * k)
+                .map(|i| JacEntry {
+                    node: ((i * 13) % n) as u32,
+                    row: row_of(i % k),
+                    h: Vec3::new(test_value(i, 1), test_value(i, 2), test_value(i, 3)),
+                    j: Vec3::zeros(),
+                })
+                .collect();
+            e.sort_by_key(|e| (e.node, e.row));
+            e.dedup_by_key(|e| (e.node, e.row));
+            e
+        };
+        for rigid in [true, false] {
+            let build = |row_of: &dyn Fn(usize) -> u32, m: usize| {
+                let mut comp = BodyCompliance::new();
+                comp.rigid_modes = rigid;
+                let mut w = vec![0.0; m * m];
+                comp.accumulate(
+                    &body,
+                    &mut ColumnPrefetch::default(),
+                    ComplianceMode::Factorized,
+                    h,
+                    &mut entries(row_of),
+                    &mut w,
+                    m,
+                    None,
+                )
+                .unwrap();
+                assert_eq!(comp.deflation.active, rigid);
+                w
+            };
+            let packed = build(&|r| r as u32, k);
+            let m = 2 * k + 1;
+            let spread = build(&|r| (2 * r + 1) as u32, m);
+            for r in 0..m {
+                for c in 0..m {
+                    let want = if r % 2 == 1 && c % 2 == 1 {
+                        packed[(r / 2) * k + c / 2]
+                    } else {
+                        0.0
+                    };
+                    let got = spread[r * m + c];
+                    assert!(
+                        got == want,
+                        "rigid {rigid}: ({r}, {c}): {got:e} against {want:e}"
+                    );
+                }
+            }
+            assert!(packed.iter().all(|v| v.is_finite()) && packed[0] > 0.0);
+        }
+    }
+
     /// `(L D Lᵀ)⁻¹` of `f` densely, in original numbering (`warp` applied
     /// as `Q (·) Qᵀ` when given).
     fn dense_inverse(f: &LdltFactor, warp: Option<&[Mat3]>) -> DMatrix<f64> {
