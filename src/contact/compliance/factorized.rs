@@ -327,8 +327,28 @@ fn row_update_portable(out: &mut [f64], t: [&[f64]; 3], j: Vec3) {
 
 /// `w[rows[i], rows[j]] += t[i, j] + t[j, i]` for the `k × k` row-major
 /// `t` (`k = rows.len()`, ascending), in tiles so that the transposed reads
-/// stay in cache.
+/// stay in cache. In AVX2 lanes where the CPU has them.
 fn mirror_into(t: &[f64], rows: &[u32], w: &mut [f64], m: usize) {
+    #[cfg(target_arch = "x86_64")]
+    if crate::math::has_avx2_fma() {
+        // SAFETY: the CPU supports the features the function is compiled for.
+        return unsafe { mirror_into_avx2(t, rows, w, m) };
+    }
+    mirror_into_portable(t, rows, w, m);
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn mirror_into_avx2(t: &[f64], rows: &[u32], w: &mut [f64], m: usize) {
+    mirror_into_portable(t, rows, w, m);
+}
+
+/// The kernel of [`mirror_into`]. Full tiles go through fixed-size
+/// arrays, so their copies and sums compile to vector moves and adds
+/// rather than calls and loops of unknown length; each entry is the same
+/// `t[i, j] + t[j, i]` either way.
+#[inline(always)]
+fn mirror_into_portable(t: &[f64], rows: &[u32], w: &mut [f64], m: usize) {
     const TILE: usize = 8;
     let k = rows.len();
     if k == 0 {
@@ -342,15 +362,27 @@ fn mirror_into(t: &[f64], rows: &[u32], w: &mut [f64], m: usize) {
         for j0 in (0..k).step_by(TILE) {
             let nj = TILE.min(k - j0);
             // tile[i][j] = t[i0 + i, j0 + j] + t[j0 + j, i0 + i]
-            for (i, tr) in tile.iter_mut().enumerate().take(ni) {
-                for (o, &v) in tr[..nj].iter_mut().zip(&t[(i0 + i) * k + j0..][..nj]) {
-                    *o = v;
+            if ni == TILE && nj == TILE {
+                for (i, tr) in tile.iter_mut().enumerate() {
+                    *tr = t[(i0 + i) * k + j0..][..TILE].try_into().unwrap();
                 }
-            }
-            for j in 0..nj {
-                let src = &t[(j0 + j) * k + i0..][..ni];
-                for (i, &v) in src.iter().enumerate() {
-                    tile[i][j] += v;
+                for j in 0..TILE {
+                    let src: &[f64; TILE] = t[(j0 + j) * k + i0..][..TILE].try_into().unwrap();
+                    for (tr, &v) in tile.iter_mut().zip(src) {
+                        tr[j] += v;
+                    }
+                }
+            } else {
+                for (i, tr) in tile.iter_mut().enumerate().take(ni) {
+                    for (o, &v) in tr[..nj].iter_mut().zip(&t[(i0 + i) * k + j0..][..nj]) {
+                        *o = v;
+                    }
+                }
+                for j in 0..nj {
+                    let src = &t[(j0 + j) * k + i0..][..ni];
+                    for (i, &v) in src.iter().enumerate() {
+                        tile[i][j] += v;
+                    }
                 }
             }
             for (i, tr) in tile.iter().enumerate().take(ni) {
@@ -537,6 +569,47 @@ mod tests {
                     i / m,
                     i % m
                 );
+            }
+        }
+    }
+
+    /// The mirror of `W`'s pairs (AVX2 where the CPU has it, and portable)
+    /// adds exactly `t[i, j] + t[j, i]` to each entry, for sizes with and
+    /// without partial tiles and rows contiguous or spread.
+    #[test]
+    fn mirror_adds_each_entry_and_its_transpose() {
+        for k in [0, 1, 7, 8, 9, 16, 19] {
+            for spread in [1, 3] {
+                let rows: Vec<u32> = (0..k).map(|i| (spread * i + 1) as u32).collect();
+                let m = spread * k + 2;
+                let t: Vec<f64> = (0..k * k).map(|i| test_value(i, 1)).collect();
+                let start: Vec<f64> = (0..m * m).map(|i| test_value(i, 2)).collect();
+                let mut want = start.clone();
+                for i in 0..k {
+                    for j in 0..k {
+                        let (r, c) = (rows[i] as usize, rows[j] as usize);
+                        want[r * m + c] += t[i * k + j] + t[j * k + i];
+                    }
+                }
+                let mut fast = start.clone();
+                mirror_into(&t, &rows, &mut fast, m);
+                let mut portable = start.clone();
+                mirror_into_portable(&t, &rows, &mut portable, m);
+                for (i, w) in want.iter().enumerate() {
+                    assert_eq!(
+                        fast[i].to_bits(),
+                        w.to_bits(),
+                        "k {k}, spread {spread}, {i}"
+                    );
+                    assert_eq!(
+                        portable[i].to_bits(),
+                        w.to_bits(),
+                        "k {k}, spread {spread}, {i}"
+                    );
+                }
+                if k > 0 {
+                    assert!(want != start);
+                }
             }
         }
     }
