@@ -111,14 +111,16 @@ impl Deflation {
         }
         self.key = Some(key);
         self.active = false;
-        self.y_gen = self.y_gen.wrapping_add(1);
-        if self.y_gen == 0 {
-            // Wrapped: no stamp may look valid.
-            self.y_stamp.fill(0);
-            self.y_gen = 1;
-        }
         // Only bodies with every node free come here (see `completes`).
         let n = body.num_nodes();
+        // The rows of `V` kept between passes: none valid for a new key.
+        self.y_gen = self.y_gen.wrapping_add(1);
+        if self.y_gen == 0 || self.y_stamp.len() != n {
+            self.y_stamp.clear();
+            self.y_stamp.resize(n, 0);
+            self.y_node.resize(n, [Vec3::zeros(); 6]);
+            self.y_gen = 1;
+        }
         let x = body.positions();
         let mass = body.mass();
         let mt: f64 = mass.iter().sum();
@@ -206,12 +208,6 @@ impl Deflation {
         k: usize,
     ) -> [Vec3; 6] {
         if let Some(cache) = columns {
-            let n = self.z.len();
-            if self.y_stamp.len() != n {
-                self.y_stamp.clear();
-                self.y_stamp.resize(n, 0);
-                self.y_node.resize(n, [Vec3::zeros(); 6]);
-            }
             if self.y_stamp[k] == self.y_gen {
                 return self.y_node[k];
             }
