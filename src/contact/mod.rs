@@ -104,6 +104,8 @@ pub struct ContactSolver {
     contacts: Vec<Contact>,
     jac: Jacobian,
     w: Vec<f64>,
+    /// Per row of `w`, during a build: whether a body has written it yet.
+    row_written: Vec<bool>,
     lambda: Vec<f64>,
     lcp_scratch: LcpScratch,
     warm: WarmStart,
@@ -410,6 +412,8 @@ impl ContactSolver {
         let m = self.jac.m();
         self.w.clear();
         self.w.resize(m * m, 0.0);
+        self.row_written.clear();
+        self.row_written.resize(m, false);
         for bi in 0..bodies.len() {
             let entries = &mut self.jac.entries[bi];
             if entries.is_empty() {
@@ -419,6 +423,12 @@ impl ContactSolver {
             let compliance = &mut self.compliance[bi];
             compliance.reuse_steps = self.settings.factor_reuse;
             compliance.rigid_modes = self.settings.rigid_modes;
+            // The body's block of `w` is still zero when no body before it
+            // wrote any of its rows.
+            compliance.fresh_block = entries.iter().all(|e| !self.row_written[e.row as usize]);
+            for e in entries.iter() {
+                self.row_written[e.row as usize] = true;
+            }
             // The body's node-column hand-over, passed openly and put back.
             let mut prefetch = std::mem::take(bodies.body_mut(bi).column_prefetch_mut());
             let result = compliance.accumulate(

@@ -213,45 +213,83 @@ fn paper_fig3_lens_through_hole_every_mode() {
     }
 }
 
-#[test]
-fn two_bodies_pressed_together() {
+/// A box resting on a box fixed at its bottom, pressed down by forces on its
+/// top, in a scene with `settings` and every body on `kind`.
+fn two_boxes(settings: ContactSettings, kind: PreconditionerKind) -> Scene {
     let lower =
         generate::box_mesh(v3(-4e-3, -4e-3, -4e-3), v3(4e-3, 4e-3, 0.0), [4, 4, 2]).unwrap();
     let upper =
         generate::box_mesh(v3(-3e-3, -3e-3, 0.05e-3), v3(3e-3, 3e-3, 4e-3), [3, 3, 2]).unwrap();
-    let g = Some(v3(0.0, 0.0, -9.81));
-    let mut a = DeformableBody::new(
-        lower,
-        TissueMaterial::new(1000.0, 2e4, 0.3),
-        BodySettings {
-            gravity: g,
-            ..Default::default()
-        },
-    )
-    .unwrap();
+    let body = |mesh| {
+        DeformableBody::new(
+            mesh,
+            TissueMaterial::new(1000.0, 2e4, 0.3),
+            BodySettings {
+                gravity: Some(v3(0.0, 0.0, -9.81)),
+                preconditioner: kind,
+                ..Default::default()
+            },
+        )
+        .unwrap()
+    };
+    let mut a = body(lower);
     a.fix_where(|p| p.z < -4e-3 + 1e-9);
-    let mut b = DeformableBody::new(
-        upper,
-        TissueMaterial::new(1000.0, 2e4, 0.3),
-        BodySettings {
-            gravity: g,
-            ..Default::default()
-        },
-    )
-    .unwrap();
+    let mut b = body(upper);
     let top: Vec<usize> = (0..b.num_nodes())
         .filter(|&i| b.mesh().positions()[i].z > 4e-3 - 1e-9)
         .collect();
     for &i in &top {
         b.set_external_force(i, v3(0.0, 0.0, -2e-5)).unwrap();
     }
-    let mut scene = Scene::new(ContactSettings {
-        alarm_distance: 2e-4,
-        ..Default::default()
-    })
-    .unwrap();
+    let mut scene = Scene::new(settings).unwrap();
     scene.add_body(a);
     scene.add_body(b);
+    scene
+}
+
+/// Two bodies share every contact row: `W` is the sum of both bodies'
+/// `h² J P⁻¹ Jᵀ`, the first body's block built in place in `W` and the
+/// second's added through its own buffer.
+#[test]
+fn two_bodies_w_is_the_sum_of_both_bodies_dense_references() {
+    let mut scene = two_boxes(
+        ContactSettings {
+            alarm_distance: 2e-4,
+            factor_reuse: 0,
+            rigid_modes: false,
+            ..Default::default()
+        },
+        PreconditionerKind::Periodic { every: 5 },
+    );
+    let h = 0.003;
+    for _ in 0..40 {
+        scene.step(h).unwrap();
+    }
+    detect_and_build(&mut scene, h);
+    let (w, m) = scene.contact.delassus();
+    assert!(m > 20, "{m} rows");
+    let mut wref = DMatrix::zeros(m, m);
+    for bi in 0..2 {
+        let b = &scene.bodies[bi];
+        let entries = scene.contact.jacobian(bi);
+        assert!(!entries.is_empty(), "body {bi} has no rows");
+        let st = b.preconditioner().factor_state().unwrap();
+        let inv = dense_solve_matrix(&st.factor, b.num_nodes());
+        wref += reference_w(entries, &inv, m, h, true);
+    }
+    let err = max_rel_diff(w, &wref);
+    assert!(err <= 1e-10, "relative difference {err:e}");
+}
+
+#[test]
+fn two_bodies_pressed_together() {
+    let mut scene = two_boxes(
+        ContactSettings {
+            alarm_distance: 2e-4,
+            ..Default::default()
+        },
+        BodySettings::default().preconditioner,
+    );
     let tol = 0.01 * scene.bodies[1].mesh().min_edge_length();
     let mut touching = 0;
     for s in 0..150 {

@@ -120,6 +120,12 @@ pub struct BodyCompliance {
     /// Complete a lagging factor with the body's rigid modes
     /// ([`crate::contact::ContactSettings::rigid_modes`]).
     pub rigid_modes: bool,
+    /// Set by the contact solver for the next [`Self::accumulate`] only:
+    /// this body's block of `w` (its rows by its rows) is zero, no body
+    /// before it having written any of its rows, so the `Factorized` build
+    /// may write it in place (see `factorized::contract`). Off, the build
+    /// only adds to `w`.
+    pub(crate) fresh_block: bool,
     source: factorized::FactorSource,
     deflation: deflation::Deflation,
     cache: ColumnCache,
@@ -200,6 +206,7 @@ impl BodyCompliance {
         m: usize,
         backend: Option<&mut dyn ComplianceBackend>,
     ) -> Result<()> {
+        let fresh = std::mem::take(&mut self.fresh_block);
         self.cache.solves = 0;
         self.cache.gram_blocks = 0;
         if entries.is_empty() {
@@ -262,6 +269,7 @@ impl BodyCompliance {
                         entries,
                         w,
                         m,
+                        fresh,
                     );
                 }
                 if completes(self.rigid_modes, body, mode, &view)
@@ -494,6 +502,80 @@ mod tests {
                 }
             }
             assert!(packed.iter().all(|v| v.is_finite()) && packed[0] > 0.0);
+        }
+    }
+
+    /// A body whose block of `W` is still zero (`fresh_block`) gets it
+    /// built in place: the same `W` as through `tri`, to the bit where each
+    /// row has entries at one node only, and to rounding where a row's
+    /// entries span nodes (the self-blocks of the nodes are then summed in
+    /// another order). Rows that are not contiguous go through `tri` even
+    /// when fresh, and the flag serves one build only.
+    #[test]
+    fn a_fresh_block_is_built_in_place_to_the_same_w() {
+        let body = twisted_lens();
+        let n = body.num_nodes();
+        let h = 0.01;
+        // 21 rows: full and partial 8×8 tiles, on and off the diagonal.
+        let k = 21;
+        let entries = |per_row: usize, row_of: &dyn Fn(usize) -> u32| {
+            let mut e: Vec<JacEntry> = (0..per_row * k)
+                .map(|i| JacEntry {
+                    node: ((i * 13) % n) as u32,
+                    row: row_of(i % k),
+                    h: Vec3::new(test_value(i, 1), test_value(i, 2), test_value(i, 3)),
+                    j: Vec3::zeros(),
+                })
+                .collect();
+            e.sort_by_key(|e| (e.node, e.row));
+            e.dedup_by_key(|e| (e.node, e.row));
+            e
+        };
+        for rigid in [true, false] {
+            for per_row in [1, 2] {
+                for spread in [false, true] {
+                    let row_of = |r: usize| if spread { 2 * r as u32 } else { r as u32 };
+                    let m = if spread { 2 * k } else { k };
+                    let build = |fresh: bool| {
+                        let mut comp = BodyCompliance::new();
+                        comp.rigid_modes = rigid;
+                        comp.fresh_block = fresh;
+                        let mut w = vec![0.0; m * m];
+                        comp.accumulate(
+                            &body,
+                            &mut ColumnPrefetch::default(),
+                            ComplianceMode::Factorized,
+                            h,
+                            &mut entries(per_row, &row_of),
+                            &mut w,
+                            m,
+                            None,
+                        )
+                        .unwrap();
+                        assert!(!comp.fresh_block, "the flag serves one build");
+                        assert_eq!(comp.deflation.active, rigid);
+                        w
+                    };
+                    let (through_tri, in_place) = (build(false), build(true));
+                    let scale = through_tri.iter().fold(0.0f64, |a, v| a.max(v.abs()));
+                    assert!(scale > 0.0 && in_place.iter().all(|v| v.is_finite()));
+                    let tol = if per_row == 1 || spread {
+                        0.0
+                    } else {
+                        1e-14 * scale
+                    };
+                    for r in 0..m {
+                        for c in 0..m {
+                            let (got, want) = (in_place[r * m + c], through_tri[r * m + c]);
+                            assert!(
+                                (got - want).abs() <= tol,
+                                "rigid {rigid}, {per_row} per row, spread {spread}: \
+                                 ({r}, {c}): {got:e} against {want:e}"
+                            );
+                        }
+                    }
+                }
+            }
         }
     }
 
