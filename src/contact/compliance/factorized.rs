@@ -242,8 +242,8 @@ fn contract(
     // is `w`'s row `b.row` over the columns `r0..r0 + k`, the block is
     // mirrored there (`W_B ← W_B + W_Bᵀ`, each entry the same sum as
     // through `tri`), and the groups with themselves are added after the
-    // mirror, not before. `tri` is neither cleared nor written: `k²` fewer
-    // stores, and one pass over the block instead of three.
+    // mirror, not before. `tri` is neither cleared, written nor read twice:
+    // three streams over `k²` entries a pass instead of six.
     let g = sc.groups.len();
     sc.rows.clear();
     sc.rows.extend(entries.iter().map(|e| e.row));
