@@ -71,7 +71,7 @@ pub const HINT_BUILDS: u32 = 6;
 /// fit a core's cache. 24 to 128 measured alike on the Fig. 3 scene, a
 /// fifth less time than column order (README, "Where the back-to-back
 /// `async` factor's age comes from").
-const PRECOMPUTE_TILE: u32 = 32;
+pub(crate) const PRECOMPUTE_TILE: u32 = 32;
 
 impl ColumnPrefetch {
     /// Keeps `c` for its memory, unless a spare is already kept.
@@ -440,52 +440,5 @@ mod tests {
                 }
             }
         }
-    }
-
-    /// `precompute` forms every Gram block of its columns once, in tiles, to
-    /// the bit as a cache that forms them on demand in another order, over
-    /// more columns than two tiles (full and partial tiles, a node twice).
-    #[test]
-    fn precompute_forms_every_block_as_on_demand() {
-        use crate::body::{BodySettings, DeformableBody};
-        use crate::material::TissueMaterial;
-        use crate::mesh::generate;
-        use crate::solver::PreconditionerKind;
-        let mesh = generate::ellipsoid([2e-3, 2e-3, 1.5e-3], 5).unwrap();
-        let settings = BodySettings {
-            preconditioner: PreconditionerKind::Exact,
-            ..Default::default()
-        };
-        let mut body = DeformableBody::new(mesh, TissueMaterial::default(), settings).unwrap();
-        body.step(0.01).unwrap();
-        let f = &body.preconditioner().factor_state().unwrap().factor;
-        let n = f.symbolic.n;
-        let count = 2 * PRECOMPUTE_TILE as usize + 7;
-        assert!(n > count, "{n} nodes");
-        // Spread over the mesh, one node twice.
-        let mut nodes: Vec<u32> = (0..count).map(|i| ((i * 7919) % n) as u32).collect();
-        nodes.push(nodes[3]);
-        let key = FactorKey::Own(1);
-        let mut pre = ColumnCache::default();
-        pre.precompute(f, key, &nodes);
-        let cols = pre.cols.len() as u32;
-        assert_eq!(cols as usize, count);
-        assert_eq!(pre.gram_blocks, count * (count + 1) / 2, "each pair once");
-        assert!(pre.pairs.iter().all(|g| g.is_some()));
-        // The same columns, each block formed when first asked for, last
-        // pair first.
-        let mut lazy = ColumnCache::default();
-        lazy.reset(n, key);
-        for &k in &nodes {
-            lazy.column(f, k as usize);
-        }
-        assert_eq!(lazy.col_of_node, pre.col_of_node);
-        for b in (0..cols).rev() {
-            for a in (0..cols).rev() {
-                assert_eq!(pre.gram(a, b), lazy.gram(a, b), "columns {a}, {b}");
-            }
-        }
-        assert_eq!(lazy.gram_blocks, pre.gram_blocks);
-        assert!(pre.gram(0, 0)[(0, 0)] > 0.0);
     }
 }

@@ -505,6 +505,44 @@ mod tests {
         }
     }
 
+    /// [`ColumnCache::precompute`] forms every Gram block of its columns once, in tiles, to
+    /// the bit as a cache that forms them on demand in another order, over
+    /// more columns than two tiles (full and partial tiles, a node twice).
+    #[test]
+    fn precompute_forms_every_block_as_on_demand() {
+        use crate::solver::columns::PRECOMPUTE_TILE;
+        let body = lens(5, PreconditionerKind::Exact);
+        let f = &body.preconditioner().factor_state().unwrap().factor;
+        let n = f.symbolic.n;
+        let count = 2 * PRECOMPUTE_TILE as usize + 7;
+        assert!(n > count, "{n} nodes");
+        // Spread over the mesh, one node twice.
+        let mut nodes: Vec<u32> = (0..count).map(|i| ((i * 7919) % n) as u32).collect();
+        nodes.push(nodes[3]);
+        let key = FactorKey::Own(1);
+        let mut pre = ColumnCache::default();
+        pre.precompute(f, key, &nodes);
+        let cols = pre.cols.len() as u32;
+        assert_eq!(cols as usize, count);
+        assert_eq!(pre.gram_blocks, count * (count + 1) / 2, "each pair once");
+        assert!(pre.pairs.iter().all(|g| g.is_some()));
+        // The same columns, each block formed when first asked for, last
+        // pair first.
+        let mut lazy = ColumnCache::default();
+        lazy.reset(n, key);
+        for &k in &nodes {
+            lazy.column(f, k as usize);
+        }
+        assert_eq!(lazy.col_of_node, pre.col_of_node);
+        for b in (0..cols).rev() {
+            for a in (0..cols).rev() {
+                assert_eq!(pre.gram(a, b), lazy.gram(a, b), "columns {a}, {b}");
+            }
+        }
+        assert_eq!(lazy.gram_blocks, pre.gram_blocks);
+        assert!(pre.gram(0, 0)[(0, 0)] > 0.0);
+    }
+
     /// A body whose block of `W` is still zero (`fresh_block`) gets it
     /// built in place: the same `W` as through `tri`, to the bit where each
     /// row has entries at one node only, and to rounding where a row's
