@@ -442,6 +442,57 @@ mod tests {
         assert_eq!(comp.deflation.path_reads, 2 * m + m / 2);
     }
 
+    /// `per_row · k` entries on `k` rows (`row_of(r)`, `r < k`) at nodes
+    /// spread over `n`, sorted by node as a build sorts them; a row's
+    /// entries lie at different nodes when `per_row > 1`.
+    fn spread_entries(
+        n: usize,
+        k: usize,
+        per_row: usize,
+        row_of: &dyn Fn(usize) -> u32,
+    ) -> Vec<JacEntry> {
+        let mut e: Vec<JacEntry> = (0..per_row * k)
+            .map(|i| JacEntry {
+                node: ((i * 13) % n) as u32,
+                row: row_of(i % k),
+                h: Vec3::new(test_value(i, 1), test_value(i, 2), test_value(i, 3)),
+                j: Vec3::zeros(),
+            })
+            .collect();
+        e.sort_by_key(|e| (e.node, e.row));
+        e.dedup_by_key(|e| (e.node, e.row));
+        e
+    }
+
+    /// `W` (`m × m`, from zero) of one `Factorized` build of `body`'s
+    /// `entries`, with the completion on or off and the block fresh or not.
+    fn factorized_w(
+        body: &DeformableBody,
+        rigid: bool,
+        fresh: bool,
+        mut entries: Vec<JacEntry>,
+        m: usize,
+    ) -> Vec<f64> {
+        let mut comp = BodyCompliance::new();
+        comp.rigid_modes = rigid;
+        comp.fresh_block = fresh;
+        let mut w = vec![0.0; m * m];
+        comp.accumulate(
+            body,
+            &mut ColumnPrefetch::default(),
+            ComplianceMode::Factorized,
+            0.01,
+            &mut entries,
+            &mut w,
+            m,
+            None,
+        )
+        .unwrap();
+        assert!(!comp.fresh_block, "the flag serves one build");
+        assert_eq!(comp.deflation.active, rigid);
+        w
+    }
+
     /// A body whose rows of `W` are not contiguous (another body's rows
     /// between them) gets exactly the entries it gets with its rows packed,
     /// and leaves the rows between alone; with the rigid-mode completion and
@@ -450,39 +501,10 @@ mod tests {
     fn rows_between_a_bodys_rows_stay_untouched() {
         let body = twisted_lens();
         let n = body.num_nodes();
-        let h = 0.01;
         let k = 11;
-        let entries = |row_of: &dyn Fn(usize) -> u32| {
-            let mut e: Vec<JacEntry> = (0..2 * k)
-                .map(|i| JacEntry {
-                    node: ((i * 13) % n) as u32,
-                    row: row_of(i % k),
-                    h: Vec3::new(test_value(i, 1), test_value(i, 2), test_value(i, 3)),
-                    j: Vec3::zeros(),
-                })
-                .collect();
-            e.sort_by_key(|e| (e.node, e.row));
-            e.dedup_by_key(|e| (e.node, e.row));
-            e
-        };
         for rigid in [true, false] {
             let build = |row_of: &dyn Fn(usize) -> u32, m: usize| {
-                let mut comp = BodyCompliance::new();
-                comp.rigid_modes = rigid;
-                let mut w = vec![0.0; m * m];
-                comp.accumulate(
-                    &body,
-                    &mut ColumnPrefetch::default(),
-                    ComplianceMode::Factorized,
-                    h,
-                    &mut entries(row_of),
-                    &mut w,
-                    m,
-                    None,
-                )
-                .unwrap();
-                assert_eq!(comp.deflation.active, rigid);
-                w
+                factorized_w(&body, rigid, false, spread_entries(n, k, 2, row_of), m)
             };
             let packed = build(&|r| r as u32, k);
             let m = 2 * k + 1;
@@ -553,46 +575,21 @@ mod tests {
     fn a_fresh_block_is_built_in_place_to_the_same_w() {
         let body = twisted_lens();
         let n = body.num_nodes();
-        let h = 0.01;
         // 21 rows: full and partial 8×8 tiles, on and off the diagonal.
         let k = 21;
-        let entries = |per_row: usize, row_of: &dyn Fn(usize) -> u32| {
-            let mut e: Vec<JacEntry> = (0..per_row * k)
-                .map(|i| JacEntry {
-                    node: ((i * 13) % n) as u32,
-                    row: row_of(i % k),
-                    h: Vec3::new(test_value(i, 1), test_value(i, 2), test_value(i, 3)),
-                    j: Vec3::zeros(),
-                })
-                .collect();
-            e.sort_by_key(|e| (e.node, e.row));
-            e.dedup_by_key(|e| (e.node, e.row));
-            e
-        };
         for rigid in [true, false] {
             for per_row in [1, 2] {
                 for spread in [false, true] {
                     let row_of = |r: usize| if spread { 2 * r as u32 } else { r as u32 };
                     let m = if spread { 2 * k } else { k };
                     let build = |fresh: bool| {
-                        let mut comp = BodyCompliance::new();
-                        comp.rigid_modes = rigid;
-                        comp.fresh_block = fresh;
-                        let mut w = vec![0.0; m * m];
-                        comp.accumulate(
+                        factorized_w(
                             &body,
-                            &mut ColumnPrefetch::default(),
-                            ComplianceMode::Factorized,
-                            h,
-                            &mut entries(per_row, &row_of),
-                            &mut w,
+                            rigid,
+                            fresh,
+                            spread_entries(n, k, per_row, &row_of),
                             m,
-                            None,
                         )
-                        .unwrap();
-                        assert!(!comp.fresh_block, "the flag serves one build");
-                        assert_eq!(comp.deflation.active, rigid);
-                        w
                     };
                     let (through_tri, in_place) = (build(false), build(true));
                     let scale = through_tri.iter().fold(0.0f64, |a, v| a.max(v.abs()));
