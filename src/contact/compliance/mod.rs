@@ -527,9 +527,10 @@ mod tests {
         }
     }
 
-    /// [`ColumnCache::precompute`] forms every Gram block of its columns once, in tiles, to
-    /// the bit as a cache that forms them on demand in another order, over
-    /// more columns than two tiles (full and partial tiles, a node twice).
+    /// [`ColumnCache::precompute`] forms every Gram block of its columns
+    /// once, in tiles, to the bit as a cache that forms them on demand in
+    /// another order, over more columns than two tiles (full and partial
+    /// tiles, a node twice).
     #[test]
     fn precompute_forms_every_block_as_on_demand() {
         use crate::solver::columns::PRECOMPUTE_TILE;
