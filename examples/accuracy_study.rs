@@ -38,6 +38,10 @@ struct Args {
     /// Leave out the cataract push.
     #[arg(long)]
     no_cataract: bool,
+    /// A variant run stops once its steps have taken this many times as
+    /// long as its scene's reference run (`inf`: never).
+    #[arg(long, default_value_t = study::DEFAULT_TIME_FACTOR)]
+    time_factor: f64,
     /// Only Fig. 4 (the compliance build against contacts, with the GPU
     /// under `--features gpu`): `compliance.csv`, `fig4_compliance.png` and
     /// `fig4.md`, in seconds rather than minutes.
@@ -79,6 +83,7 @@ fn main() -> ExitCode {
         quick: args.quick,
         async_repeats: args.async_repeats.max(1),
         cataract: !args.no_cataract,
+        time_factor: args.time_factor,
     };
     #[cfg(feature = "gpu")]
     let mut gpu = gpu::backend();
@@ -161,6 +166,7 @@ fn main() -> ExitCode {
                 s.failure
                     .as_deref()
                     .map(|f| format!("  FAILED: {f}"))
+                    .or_else(|| s.stopped.as_deref().map(|f| format!("  {f}")))
                     .unwrap_or_default()
             );
         }

@@ -22,6 +22,7 @@ fn quick_study_writes_every_output_with_the_papers_ordering() {
         quick: true,
         async_repeats: 2,
         cataract: true,
+        ..Default::default()
     };
     let report = full::run(
         &config,
@@ -67,6 +68,8 @@ fn quick_study_writes_every_output_with_the_papers_ordering() {
         "rms_error_max",
         "max_penetration",
         "cg_iterations",
+        "failure",
+        "stopped",
     ] {
         assert!(header.contains(&col), "results.csv lacks {col}");
     }
@@ -176,6 +179,65 @@ fn fig4_alone_writes_its_files_and_times_the_backend() {
             && md.contains("](fig4_compliance.png)")
     );
     let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// A variant run whose steps have taken longer than its time budget (a
+/// multiple of the reference run's stepping time) stops after the step it
+/// is in and says why; the study goes on with the next run. Without a
+/// budget, or with a large one, every run takes every step. A negative or
+/// NaN multiple is refused.
+#[test]
+fn a_variant_run_over_its_time_budget_stops_and_says_so() {
+    let scene = LensThroughHole {
+        cells: 6,
+        steps: 4,
+        ..Default::default()
+    };
+    let (b, c) = (scene.body_settings(), scene.contact_settings());
+    let reference = study::variants::reference(b, c);
+    let mut list: Vec<study::Variant> =
+        study::variants::standard(b, c, &study::variants::Options::default())
+            .into_iter()
+            .filter(|v| v.name == "diagonal" || v.name == "exact")
+            .collect();
+    assert_eq!(list.len(), 2);
+    list[0].repeats = 2;
+    let runs = |factor: f64| {
+        study::run_case_within(&scene, &reference, &list, factor, &mut |_| {})
+            .unwrap()
+            .runs
+    };
+    // A budget of nothing: every run stops after its first step.
+    let stopped = runs(0.0);
+    assert_eq!(stopped.len(), 3, "each run of each variant is made");
+    for r in &stopped {
+        assert_eq!(r.steps.len(), 1, "{}", r.variant);
+        assert!(r.failure.is_none(), "{}: {:?}", r.variant, r.failure);
+        let why = r.stopped.as_deref().unwrap_or_default();
+        assert!(why.starts_with("stopped after 1 of 4 steps"), "{why}");
+        assert!(why.contains("0× the reference's"), "{why}");
+    }
+    let case = study::run_case_within(&scene, &reference, &list, 0.0, &mut |_| {}).unwrap();
+    assert_eq!(case.reference.steps.len(), 4, "the reference has no budget");
+    for s in case.summaries() {
+        assert!(s.stopped.is_some() && s.failure.is_none(), "{s:?}");
+    }
+    // No budget, and one no run can reach: every step of every run.
+    for factor in [f64::INFINITY, 1e9] {
+        for r in runs(factor) {
+            assert_eq!(r.steps.len(), 4, "{} at {factor}", r.variant);
+            assert!(r.stopped.is_none(), "{:?}", r.stopped);
+        }
+    }
+    for bad in [-1.0, f64::NAN] {
+        assert!(
+            matches!(
+                study::run_case_within(&scene, &reference, &list, bad, &mut |_| {}),
+                Err(SoftTissueError::InvalidParameter { .. })
+            ),
+            "{bad} must be refused"
+        );
+    }
 }
 
 /// `AsyncLagged` does not depend on thread timing: two runs give the same

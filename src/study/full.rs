@@ -7,7 +7,7 @@ use super::cases::{CataractPush, LensThroughHole};
 use super::compliance::{self, CONTACT_COUNTS, ComplianceTiming};
 use super::growth::{self, GrowthPoint};
 use super::validation::{self, CantileverPoint, HertzResult};
-use super::{CaseResult, Progress, StudyScene, fit_power_law, run_case, variants};
+use super::{CaseResult, Progress, StudyScene, fit_power_law, run_case_within, variants};
 use crate::contact::ComplianceBackend;
 use crate::error::Result;
 
@@ -20,6 +20,9 @@ pub struct Config {
     pub async_repeats: usize,
     /// Run the cataract push too.
     pub cataract: bool,
+    /// Each variant run's time budget, as a multiple of its scene's
+    /// reference run ([`super::run_case_within`]; `f64::INFINITY`: none).
+    pub time_factor: f64,
 }
 
 impl Default for Config {
@@ -28,6 +31,7 @@ impl Default for Config {
             quick: false,
             async_repeats: 3,
             cataract: true,
+            time_factor: super::DEFAULT_TIME_FACTOR,
         }
     }
 }
@@ -169,10 +173,11 @@ pub fn run(
     };
     let case = |scene: &dyn StudyScene, progress: &mut dyn FnMut(Progress)| {
         let (b, c) = (scene.body_settings(), scene.contact_settings());
-        run_case(
+        run_case_within(
             scene,
             &variants::reference(b, c),
             &variants::standard(b, c, &opts),
+            config.time_factor,
             progress,
         )
     };

@@ -51,7 +51,7 @@ pub fn write(report: &StudyReport, dir: &Path) -> Result<()> {
     for p in PHASES {
         let _ = write!(s, ",ms_{p}");
     }
-    s.push_str(",failure\n");
+    s.push_str(",failure,stopped\n");
     for c in &cases {
         for v in c.summaries() {
             let _ = write!(
@@ -76,8 +76,8 @@ pub fn write(report: &StudyReport, dir: &Path) -> Result<()> {
             for p in v.phase_ms {
                 let _ = write!(s, ",{p:.4}");
             }
-            let f = v.failure.as_deref().unwrap_or("").replace([',', '\n'], ";");
-            let _ = writeln!(s, ",{f}");
+            let clean = |t: &Option<String>| t.as_deref().unwrap_or("").replace([',', '\n'], ";");
+            let _ = writeln!(s, ",{},{}", clean(&v.failure), clean(&v.stopped));
         }
     }
     put(dir, "results.csv", &s)?;
@@ -301,7 +301,7 @@ fn case_section(
     );
     let _ = writeln!(
         out,
-        "| variant | runs | ms/step (range) | mean RMS error | relative | max RMS | max penetration | CG its | failure |\n|---|---|---|---|---|---|---|---|---|"
+        "| variant | runs | ms/step (range) | mean RMS error | relative | max RMS | max penetration | CG its | failure or stop |\n|---|---|---|---|---|---|---|---|---|"
     );
     let r =
         c.reference.steps.iter().map(|x| x.ms).sum::<f64>() / c.reference.steps.len().max(1) as f64;
@@ -320,7 +320,7 @@ fn case_section(
             s.rms_error_max,
             s.max_penetration * 1e6,
             s.cg_iterations,
-            s.failure.as_deref().unwrap_or("")
+            s.failure.as_deref().or(s.stopped.as_deref()).unwrap_or("")
         );
     }
     let ok = summaries_ok(c);
