@@ -351,6 +351,19 @@ fn print_summary(s: &HeadlessSummary, params: &CataractParams, recording: Option
         "LCP sweeps (first pass): at most {}, mean {:.1} over the jam steps; solves at the sweep limit: {}",
         s.lcp_sweeps.0, s.lcp_sweeps.1, s.lcp_capped
     );
+    let w = s.slowest;
+    println!(
+        "slowest steps: the longest {:.1} ms (step {}, {} contacts, {} passes, {} LCP solves at the sweep limit), \
+         99th percentile {:.1} ms, {} steps longer than h",
+        w.ms, w.step, w.contacts, w.passes, w.capped, w.p99_ms, w.over_h
+    );
+    let phases: Vec<String> = common::headless::PHASES
+        .iter()
+        .zip(w.phase_ms)
+        .take(8)
+        .map(|(n, v)| format!("{n} {v:.1}"))
+        .collect();
+    println!("  the longest step's phases (ms): {}", phases.join(", "));
     println!(
         "compliance on the stepping thread, mean per jam step: {:.1} node columns, {:.0} Gram blocks",
         s.columns_jam.0, s.columns_jam.1

@@ -93,6 +93,11 @@ pub struct HeadlessSummary {
     pub lcp_sweeps: (usize, f64),
     /// LCP solves that ran to their sweep limit unconverged.
     pub lcp_capped: u64,
+    /// The slowest steps (the pipeline's wall clock): the longest, in ms,
+    /// with its step (1-based), contacts, contact passes and LCP solves at
+    /// the sweep limit; the 99th percentile in ms; and the steps longer than
+    /// the time step (those that fall behind real time on their own).
+    pub slowest: SlowestStep,
     /// Lagging factors refreshed by the contact phase (consistency checks).
     pub consistency_refactors: u64,
     /// Rescues of lagging factors (consistency checks and CG), all bodies,
@@ -108,6 +113,25 @@ pub struct HeadlessSummary {
     pub recorded: usize,
     /// The GPU compliance's counters at the end, when it ran.
     pub gpu: Option<GpuCounters>,
+}
+
+/// The slowest steps of a headless run (see [`HeadlessSummary::slowest`]).
+#[derive(Debug, Clone, Copy, Default)]
+pub struct SlowestStep {
+    /// The longest step, ms.
+    pub ms: f64,
+    /// Its step number (1-based), contacts, contact passes and LCP solves
+    /// that ran to their sweep limit.
+    pub step: u64,
+    pub contacts: usize,
+    pub passes: usize,
+    pub capped: u64,
+    /// Its milliseconds per phase ([`PHASES`]).
+    pub phase_ms: [f64; 10],
+    /// The 99th percentile of the step time, ms.
+    pub p99_ms: f64,
+    /// Steps longer than the time step.
+    pub over_h: usize,
 }
 
 /// The GPU compliance's counters at the end of a headless run.
@@ -260,6 +284,8 @@ pub fn run_headless_recording(
     let mut max_pen: f64 = 0.0;
     let mut max_lens_speed: f64 = 0.0;
     let mut max_passes = (0, 0);
+    let mut slowest = SlowestStep::default();
+    let mut capped_before = app.world().resource::<SoftTissueDiagnostics>().lcp_capped;
     let mut done = 0;
     let mut last = app.world().resource::<SoftTissueDiagnostics>().steps;
     let mut guard = 0;
@@ -300,6 +326,19 @@ pub fn run_headless_recording(
             p.push(x);
         }
         contacts.push(d.contacts);
+        if d.pipeline_ms > slowest.ms {
+            slowest = SlowestStep {
+                ms: d.pipeline_ms,
+                step: d.steps,
+                contacts: d.contacts,
+                passes: d.contact_passes,
+                capped: d.lcp_capped - capped_before,
+                phase_ms: v,
+                ..slowest
+            };
+        }
+        slowest.over_h += usize::from(d.pipeline_ms > 1e3 * h);
+        capped_before = d.lcp_capped;
         lcp_sweeps.0 = lcp_sweeps.0.max(d.lcp_first_iterations);
         if d.contacts > 90 {
             jam.0.push(d.pipeline_ms);
@@ -383,6 +422,12 @@ pub fn run_headless_recording(
     for (m, p) in median_ms.iter_mut().zip(phases.iter_mut()) {
         *m = med(p);
     }
+    // Sorted by `med`.
+    let wall = &phases[PIPELINE];
+    slowest.p99_ms = wall
+        .get((0.99 * wall.len().saturating_sub(1) as f64).round() as usize)
+        .copied()
+        .unwrap_or(f64::NAN);
     let mut c = contacts;
     c.sort_unstable();
     let band_steps = band.0.len().max(1) as f64;
@@ -423,6 +468,7 @@ pub fn run_headless_recording(
         ),
         max_passes,
         lcp_capped: app.world().resource::<SoftTissueDiagnostics>().lcp_capped,
+        slowest,
         consistency_refactors: app
             .world()
             .resource::<SoftTissueDiagnostics>()
