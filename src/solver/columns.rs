@@ -10,7 +10,7 @@
 //! nodes recently in contact ([`HINT_BUILDS`]) before it hands a new factor
 //! over, so that the stepping thread finds them ready.
 
-use super::ldlt::LdltFactor;
+use super::ldlt::{BATCH, BatchRows, LdltFactor};
 use crate::math::Mat3;
 
 /// Which factor a set of node columns (or a compliance build) belongs to.
@@ -131,7 +131,7 @@ fn pair_slot(a: u32, b: u32) -> usize {
     hi * (hi + 1) / 2 + lo
 }
 
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone, Copy, Default)]
 pub(crate) struct Column {
     pub(crate) start: usize,
     pub(crate) len: usize,
@@ -254,6 +254,10 @@ pub struct ColumnCache {
     /// columns are added; `None` until computed.
     pub(crate) pairs: Vec<Option<Mat3>>,
     pub(crate) work: Vec<Mat3>,
+    /// Scratch of the batched solves ([`Self::columns`]): zero between them.
+    batch_work: Vec<BatchRows>,
+    /// Scratch of [`Self::columns`]: the nodes it solves.
+    pending: Vec<usize>,
     pub(crate) solves: usize,
     pub(crate) gram_blocks: usize,
 }
@@ -280,12 +284,29 @@ impl ColumnCache {
         if c != u32::MAX {
             return c;
         }
+        let id = self.new_id(node);
         let start = self.paths.len();
         f.node_forward_solve(node, &mut self.work, &mut self.paths, &mut self.blocks);
-        let len = self.paths.len() - start;
+        self.finish(f, id, start, self.paths.len() - start);
+        self.solves += 1;
+        id
+    }
+
+    /// The next column id, for `node`'s column (made by the caller).
+    fn new_id(&mut self, node: usize) -> u32 {
+        let id = self.cols.len() as u32;
+        self.cols.push(Column::default());
+        self.pairs.resize(self.pairs.len() + id as usize + 1, None);
+        self.col_of_node[node] = id;
+        id
+    }
+
+    /// Column `id`: its path and blocks at `start..start + len` of `paths`
+    /// and `blocks`; adds its `soa_z` and `soa_s` entries.
+    fn finish(&mut self, f: &LdltFactor, id: u32, start: usize, len: usize) {
         let soa = self.soa_z.len();
         for i in 0..3 {
-            for t in start..self.paths.len() {
+            for t in start..start + len {
                 let d = f.d[self.paths[t]];
                 let z = &self.blocks[t];
                 for r in 0..3 {
@@ -294,12 +315,53 @@ impl ColumnCache {
                 }
             }
         }
-        let id = self.cols.len() as u32;
-        self.cols.push(Column { start, len, soa });
-        self.pairs.resize(self.pairs.len() + id as usize + 1, None);
-        self.col_of_node[node] = id;
-        self.solves += 1;
-        id
+        self.cols[id as usize] = Column { start, len, soa };
+    }
+
+    /// [`Self::column`] of each of `nodes` (original numbering, any order,
+    /// repeats allowed, out of range ones skipped): the same ids, in the
+    /// order of `nodes`, and the same columns to the bit. Where the CPU has
+    /// AVX2/FMA, the columns not cached yet are solved [`BATCH`] at a time
+    /// ([`LdltFactor::nodes_forward_solve`]), in the factor's elimination
+    /// order, so that each batch's paths share most of their blocks.
+    pub(crate) fn columns(&mut self, f: &LdltFactor, nodes: impl IntoIterator<Item = usize>) {
+        let n = f.symbolic.n;
+        if !crate::math::has_avx2_fma() {
+            for k in nodes {
+                if k < n {
+                    self.column(f, k);
+                }
+            }
+            return;
+        }
+        let mut pending = std::mem::take(&mut self.pending);
+        pending.clear();
+        for k in nodes {
+            if k < n && self.col_of_node[k] == u32::MAX {
+                self.new_id(k);
+                pending.push(k);
+            }
+        }
+        pending.sort_unstable_by_key(|&k| f.symbolic.iperm[k]);
+        if !pending.is_empty() && self.batch_work.len() != n {
+            self.batch_work.clear();
+            self.batch_work.resize(n, [[0.0; 3 * BATCH]; 3]);
+        }
+        for chunk in pending.chunks(BATCH) {
+            let mut start = self.paths.len();
+            let lens = f.nodes_forward_solve(
+                chunk,
+                &mut self.batch_work,
+                &mut self.paths,
+                &mut self.blocks,
+            );
+            for (&k, len) in chunk.iter().zip(lens) {
+                self.finish(f, self.col_of_node[k], start, len);
+                start += len;
+            }
+        }
+        self.solves += pending.len();
+        self.pending = pending;
     }
 
     /// Solves the columns of `nodes` (original numbering, any order, repeats
@@ -307,11 +369,7 @@ impl ColumnCache {
     /// of factor `key`.
     pub(crate) fn precompute(&mut self, f: &LdltFactor, key: FactorKey, nodes: &[u32]) {
         self.reset(f.symbolic.n, key);
-        for &k in nodes {
-            if (k as usize) < f.symbolic.n {
-                self.column(f, k as usize);
-            }
-        }
+        self.columns(f, nodes.iter().map(|&k| k as usize));
         // Every pair once, in tiles of columns: a tile pair's columns stay
         // in the core's cache while their blocks are formed (in plain column
         // order each pair read its two columns from the shared cache or
@@ -412,6 +470,85 @@ mod tests {
             p.set_hint([].into_iter());
         }
         assert!(p.hint().is_empty());
+    }
+
+    /// `columns` gives the ids and columns that `column` gives one node at a
+    /// time, to the bit: nodes in any order, repeated, already cached, out of
+    /// range, more than one batch of them.
+    #[test]
+    fn columns_in_batches_are_the_single_ones() {
+        let mesh = crate::mesh::generate::box_mesh(
+            crate::math::Vec3::zeros(),
+            crate::math::Vec3::new(1.0, 1.0, 2.0),
+            [3, 3, 6],
+        )
+        .unwrap();
+        let pattern = crate::fem::assembly::BlockPattern::new(mesh.num_vertices(), mesh.tets());
+        let sym = std::sync::Arc::new(super::super::ldlt::LdltSymbolic::new(&pattern).unwrap());
+        let mut f = sym.alloc_factor();
+        let val = |i: usize| ((i as f64) * 0.618).sin() * 0.3;
+        for (p, b) in f.l.iter_mut().enumerate() {
+            *b = Mat3::from_fn(|r, c| val(9 * p + 3 * c + r));
+        }
+        for (k, d) in f.ldiag.iter_mut().enumerate() {
+            *d = [val(7 * k), val(7 * k + 1), val(7 * k + 2)];
+        }
+        for (k, d) in f.d.iter_mut().enumerate() {
+            *d = crate::math::Vec3::new(1.0 + val(5 * k).abs(), 2.0, 0.5 + val(5 * k + 1).abs());
+        }
+        let n = sym.n;
+        let key = FactorKey::Own(3);
+        let first = [4usize, 9];
+        let mut nodes: Vec<usize> = (0..2 * BATCH + 3).map(|i| (i * 53 + 11) % n).collect();
+        nodes.extend([nodes[2], 9, n, n + 7]);
+        let (mut batched, mut single) = (ColumnCache::default(), ColumnCache::default());
+        batched.reset(n, key);
+        single.reset(n, key);
+        for k in first {
+            batched.column(&f, k);
+            single.column(&f, k);
+        }
+        batched.columns(&f, nodes.iter().copied());
+        for &k in &nodes {
+            if k < n {
+                single.column(&f, k);
+            }
+        }
+        assert_eq!(batched.col_of_node, single.col_of_node, "ids");
+        assert_eq!(batched.solves, single.solves);
+        assert_eq!(batched.cols.len(), single.cols.len());
+        let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        for (a, b) in batched.cols.iter().zip(&single.cols) {
+            assert_eq!(a.len, b.len);
+            assert_eq!(
+                batched.paths[a.start..a.start + a.len],
+                single.paths[b.start..b.start + b.len]
+            );
+            let (za, zb) = (
+                &batched.soa_z[a.soa..a.soa + 9 * a.len],
+                &single.soa_z[b.soa..b.soa + 9 * b.len],
+            );
+            assert_eq!(bits(za), bits(zb));
+            let (sa, sb) = (
+                &batched.soa_s[a.soa..a.soa + 9 * a.len],
+                &single.soa_s[b.soa..b.soa + 9 * b.len],
+            );
+            assert_eq!(bits(sa), bits(sb));
+        }
+        let m = batched.cols.len() as u32;
+        for a in 0..m {
+            for b in 0..m {
+                assert_eq!(batched.gram(a, b), single.gram(a, b));
+            }
+        }
+        assert!(
+            batched
+                .batch_work
+                .iter()
+                .flatten()
+                .flatten()
+                .all(|&x| x == 0.0)
+        );
     }
 
     /// The dispatched Gram kernel (AVX2/FMA where the CPU has it) and the

@@ -1059,6 +1059,169 @@ impl LdltFactor {
     }
 }
 
+/// Node columns solved together by [`LdltFactor::nodes_forward_solve`].
+pub const BATCH: usize = 8;
+
+/// One node's rows in [`LdltFactor::nodes_forward_solve`]: row `i` holds
+/// entry `i` of the three unit columns of each of the [`BATCH`] nodes, node
+/// `b`'s column `c` at `3 b + c`.
+pub type BatchRows = [[f64; 3 * BATCH]; 3];
+
+impl LdltFactor {
+    /// [`Self::node_forward_solve`] of up to [`BATCH`] nodes at once, to
+    /// the bit the same: each node's path and blocks are appended in the
+    /// order of `nodes`, as that function would one node after the other.
+    /// Each block of `L` on the union of the nodes' paths is read once and
+    /// applied to all of them, in vector lanes across their columns (where
+    /// a node's path does not pass, its lanes are zero and stay zero).
+    /// Cheaper than one node at a time when the paths share most of their
+    /// blocks (nodes near each other in the elimination tree). `work`
+    /// (length `n`) must be zero on entry and is on exit. Returns each
+    /// node's path length (its blocks' count). Needs AVX2/FMA (the caller
+    /// checks [`has_avx2_fma`]); not for other CPUs, whose one-node path
+    /// does not fuse its products.
+    ///
+    /// # Panics
+    /// With more than [`BATCH`] nodes, a node out of range, or without
+    /// AVX2/FMA.
+    pub fn nodes_forward_solve(
+        &self,
+        nodes: &[usize],
+        work: &mut [BatchRows],
+        path: &mut Vec<usize>,
+        blocks: &mut Vec<Mat3>,
+    ) -> [usize; BATCH] {
+        assert!(nodes.len() <= BATCH, "at most {BATCH} nodes");
+        assert!(has_avx2_fma(), "the batched node solve needs AVX2/FMA");
+        let s = &*self.symbolic;
+        assert!(work.len() >= s.n, "work: one entry per node");
+        // Each node's path, and a cursor along it (its next block to write).
+        let base = path.len();
+        let mut cursor = [(0usize, 0usize); BATCH];
+        for (b, &node) in nodes.iter().enumerate() {
+            let start = path.len();
+            let mut j = s.iperm[node];
+            work[j][0][3 * b] = 1.0;
+            work[j][1][3 * b + 1] = 1.0;
+            work[j][2][3 * b + 2] = 1.0;
+            while j != NONE {
+                path.push(j);
+                j = s.parent[j];
+            }
+            cursor[b] = (start, path.len());
+        }
+        let first = blocks.len();
+        blocks.resize(first + path.len() - base, Mat3::zeros());
+        #[cfg(target_arch = "x86_64")]
+        {
+            let (count, out) = (nodes.len(), &mut blocks[first..]);
+            if std::arch::is_x86_feature_detected!("avx512f") {
+                // SAFETY: the CPU supports the features the function is compiled for.
+                unsafe { self.batch_sweep_avx512(count, &mut cursor, work, path, base, out) };
+            } else {
+                // SAFETY: as above (checked by the assertion).
+                unsafe { self.batch_sweep_avx2(count, &mut cursor, work, path, base, out) };
+            }
+        }
+        let mut lens = [0; BATCH];
+        for (b, len) in lens.iter_mut().enumerate().take(nodes.len()) {
+            *len = cursor[b].1 - if b == 0 { base } else { cursor[b - 1].1 };
+        }
+        lens
+    }
+
+    /// [`Self::batch_sweep`] in AVX-512 lanes (three registers a row).
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx512f,avx2,fma")]
+    fn batch_sweep_avx512(
+        &self,
+        count: usize,
+        cursor: &mut [(usize, usize); BATCH],
+        work: &mut [BatchRows],
+        path: &[usize],
+        base: usize,
+        blocks: &mut [Mat3],
+    ) {
+        self.batch_sweep(count, cursor, work, path, base, blocks);
+    }
+
+    /// [`Self::batch_sweep`] in AVX2 lanes.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2,fma")]
+    fn batch_sweep_avx2(
+        &self,
+        count: usize,
+        cursor: &mut [(usize, usize); BATCH],
+        work: &mut [BatchRows],
+        path: &[usize],
+        base: usize,
+        blocks: &mut [Mat3],
+    ) {
+        self.batch_sweep(count, cursor, work, path, base, blocks);
+    }
+
+    /// The sweep of [`Self::nodes_forward_solve`] over the union of the
+    /// paths, in ascending order (each path ascends, so the next node is the
+    /// smallest of the cursors'). The arithmetic of each entry is that of
+    /// [`unit_lower_solve_mat`] and [`sub_products_avx2`]: unfused in the
+    /// diagonal block, one fused multiply-add per product after.
+    #[inline(always)]
+    fn batch_sweep(
+        &self,
+        count: usize,
+        cursor: &mut [(usize, usize); BATCH],
+        work: &mut [BatchRows],
+        path: &[usize],
+        base: usize,
+        blocks: &mut [Mat3],
+    ) {
+        const W: usize = 3 * BATCH;
+        let s = &*self.symbolic;
+        loop {
+            let mut j = NONE;
+            for &(c, end) in &cursor[..count] {
+                if c < end {
+                    j = j.min(path[c]);
+                }
+            }
+            if j == NONE {
+                break;
+            }
+            let l = &self.ldiag[j];
+            let b = std::mem::replace(&mut work[j], [[0.0; W]; 3]);
+            let mut z = [[0.0; W]; 3];
+            for c in 0..W {
+                let x0 = b[0][c];
+                let x1 = b[1][c] - l[0] * x0;
+                let x2 = b[2][c] - l[1] * x0 - l[2] * x1;
+                z[0][c] = x0;
+                z[1][c] = x1;
+                z[2][c] = x2;
+            }
+            for (k, (c, end)) in cursor[..count].iter_mut().enumerate() {
+                if *c < *end && path[*c] == j {
+                    blocks[*c - base] = Mat3::from_fn(|r, q| z[r][3 * k + q]);
+                    *c += 1;
+                }
+            }
+            for p in s.col_ptr[j]..s.col_ptr[j + 1] {
+                let lp = &self.l[p];
+                let w = &mut work[s.row_idx[p]];
+                for (i, row) in w.iter_mut().enumerate() {
+                    let mut acc = *row;
+                    for (k, zk) in z.iter().enumerate() {
+                        let a = -lp[(i, k)];
+                        for c in 0..W {
+                            acc[c] = a.mul_add(zk[c], acc[c]);
+                        }
+                    }
+                    *row = acc;
+                }
+            }
+        }
+    }
+}
+
 /// `work[rows[i]] -= l[i] · z` for every block of one column of `L` (the inner
 /// loop of the factorization and of the node column solves), with the
 /// AVX2/FMA kernel where the CPU has it.
@@ -1260,6 +1423,66 @@ mod tests {
             *d = Vec3::new(1.0 + val(5 * k).abs(), 2.0, 0.5 + val(5 * k + 1).abs());
         }
         (sym, f)
+    }
+
+    /// The batched node columns are those of one node at a time to the bit
+    /// (where the CPU has AVX2/FMA: elsewhere the batch is not used): up to
+    /// [`BATCH`] nodes, near each other in the tree or not, in any order, each
+    /// path and its blocks appended in the order of the nodes; `work` is zero
+    /// again after.
+    #[test]
+    fn batched_node_columns_are_the_single_ones() {
+        if !has_avx2_fma() {
+            eprintln!("SKIPPED: no AVX2/FMA, the batched node solve is not used");
+            return;
+        }
+        let (sym, f) = arbitrary_factor([3, 3, 6]);
+        let n = sym.n;
+        let mut single = vec![Mat3::zeros(); n];
+        let mut work = vec![[[0.0; 3 * BATCH]; 3]; n];
+        let spread: Vec<usize> = (0..BATCH).map(|i| (i * 37 + 5) % n).collect();
+        let near: Vec<usize> = (0..BATCH).map(|i| sym.perm[i]).collect();
+        let sets: [&[usize]; 5] = [&spread, &near, &near[..3], &[n - 1], &[]];
+        for nodes in sets {
+            let (mut path, mut blocks) = (vec![7], vec![Mat3::identity()]);
+            let lens = f.nodes_forward_solve(nodes, &mut work, &mut path, &mut blocks);
+            let (mut p1, mut b1) = (vec![7], vec![Mat3::identity()]);
+            for &k in nodes {
+                f.node_forward_solve(k, &mut single, &mut p1, &mut b1);
+            }
+            assert_eq!(path, p1, "paths of {nodes:?}");
+            assert_eq!(blocks.len(), b1.len());
+            for (t, (a, b)) in blocks.iter().zip(&b1).enumerate() {
+                assert!(
+                    a.iter()
+                        .zip(b.iter())
+                        .all(|(x, y)| x.to_bits() == y.to_bits()),
+                    "block {t} of {nodes:?}: {a} against {b}"
+                );
+            }
+            let mut total = 1;
+            for (b, &k) in nodes.iter().enumerate() {
+                let mut len = 0;
+                let mut j = sym.iperm[k];
+                while j != NONE {
+                    len += 1;
+                    j = sym.parent[j];
+                }
+                assert_eq!(lens[b], len, "path length of node {k}");
+                total += len;
+            }
+            assert_eq!(total, path.len());
+            assert!(lens[nodes.len()..].iter().all(|&l| l == 0));
+            assert!(
+                work.iter().flatten().flatten().all(|&x| x == 0.0),
+                "work left dirty"
+            );
+        }
+        let nine: Vec<usize> = (0..=BATCH).collect();
+        let caught = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+            f.nodes_forward_solve(&nine, &mut work, &mut Vec::new(), &mut Vec::new())
+        }));
+        assert!(caught.is_err(), "more than BATCH nodes must be refused");
     }
 
     /// The AVX2/FMA forward and backward solves (where the CPU has them) match

@@ -203,6 +203,12 @@ pub(super) fn accumulate(
             None => cache.reset(view.factor.symbolic.n, view.key),
         }
     }
+    // The columns not cached yet, solved together (the same ids and columns
+    // as one at a time below).
+    cache.columns(
+        view.factor,
+        sc.groups.iter().map(|&(s, _)| entries[s].node as usize),
+    );
     sc.cols.clear();
     for &(s, _) in &sc.groups {
         let c = cache.column(view.factor, entries[s].node as usize);
