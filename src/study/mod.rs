@@ -472,8 +472,8 @@ fn run_one(
     run
 }
 
-/// A variant run's time budget: `factor` times the reference run's stepping
-/// time `reference_ms`, which is `ms`.
+/// A variant run's time budget in milliseconds, `ms`: `factor` times the
+/// reference run's stepping time, `reference_ms`.
 #[derive(Debug, Clone, Copy)]
 struct Budget {
     factor: f64,
