@@ -1078,8 +1078,8 @@ impl LdltFactor {
     /// blocks (nodes near each other in the elimination tree). `work`
     /// (length `n`) must be zero on entry and is on exit. Returns each
     /// node's path length (its blocks' count). Needs AVX2/FMA (the caller
-    /// checks [`has_avx2_fma`]); not for other CPUs, whose one-node path
-    /// does not fuse its products.
+    /// checks; `is_x86_feature_detected!`); not for other CPUs, whose
+    /// one-node path does not fuse its products.
     ///
     /// # Panics
     /// With more than [`BATCH`] nodes, a node out of range, or without
