@@ -370,10 +370,15 @@ impl ColumnCache {
     pub(crate) fn precompute(&mut self, f: &LdltFactor, key: FactorKey, nodes: &[u32]) {
         self.reset(f.symbolic.n, key);
         self.columns(f, nodes.iter().map(|&k| k as usize));
-        // Every pair once, in tiles of columns: a tile pair's columns stay
-        // in the core's cache while their blocks are formed (in plain column
-        // order each pair read its two columns from the shared cache or
-        // memory). Each block is the same either way.
+        self.all_pairs();
+    }
+
+    /// Every Gram block among the cached columns not cached yet, in tiles of
+    /// columns: a tile pair's columns stay in the core's cache while their
+    /// blocks are formed (in plain column order each pair read its two
+    /// columns from the shared cache or memory). Each block is the same
+    /// either way.
+    pub(crate) fn all_pairs(&mut self) {
         let m = self.cols.len() as u32;
         for b0 in (0..m).step_by(PRECOMPUTE_TILE as usize) {
             let b1 = (b0 + PRECOMPUTE_TILE).min(m);

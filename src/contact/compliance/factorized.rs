@@ -191,6 +191,7 @@ pub(super) fn accumulate(
     m: usize,
     fresh: bool,
 ) {
+    let mut cold = false;
     if cache.key != Some(view.key) {
         // A new factor: its columns may be ready from the background worker.
         match prefetch.take(view.key) {
@@ -200,7 +201,10 @@ pub(super) fn accumulate(
                 cache.solves = 0;
                 cache.gram_blocks = 0;
             }
-            None => cache.reset(view.factor.symbolic.n, view.key),
+            None => {
+                cache.reset(view.factor.symbolic.n, view.key);
+                cold = true;
+            }
         }
     }
     // The columns not cached yet, solved together (the same ids and columns
@@ -209,6 +213,11 @@ pub(super) fn accumulate(
         view.factor,
         sc.groups.iter().map(|&(s, _)| entries[s].node as usize),
     );
+    if cold {
+        // Every column is this build's and `contract` takes every pair of
+        // them: formed in tiles first, as the worker does (the same blocks).
+        cache.all_pairs();
+    }
     sc.cols.clear();
     for &(s, _) in &sc.groups {
         let c = cache.column(view.factor, entries[s].node as usize);
