@@ -1060,12 +1060,12 @@ impl LdltFactor {
 }
 
 /// Node columns solved together by [`LdltFactor::nodes_forward_solve`].
-pub const BATCH: usize = 8;
+pub(crate) const BATCH: usize = 8;
 
 /// One node's rows in [`LdltFactor::nodes_forward_solve`]: row `i` holds
 /// entry `i` of the three unit columns of each of the [`BATCH`] nodes, node
 /// `b`'s column `c` at `3 b + c`.
-pub type BatchRows = [[f64; 3 * BATCH]; 3];
+pub(crate) type BatchRows = [[f64; 3 * BATCH]; 3];
 
 impl LdltFactor {
     /// [`Self::node_forward_solve`] of up to [`BATCH`] nodes at once, to
@@ -1084,7 +1084,7 @@ impl LdltFactor {
     /// # Panics
     /// With more than [`BATCH`] nodes, a node out of range, or without
     /// AVX2/FMA.
-    pub fn nodes_forward_solve(
+    pub(crate) fn nodes_forward_solve(
         &self,
         nodes: &[usize],
         work: &mut [BatchRows],
