@@ -23,8 +23,10 @@
 //!   [`LdltSymbolic::joined_columns`], so each shared row of `y` is read and
 //!   written once for both), and the reach-restricted forward solve of the three unit
 //!   columns of one node ([`LdltFactor::node_forward_solve`]), whose nonzeros
-//!   lie only on the node's elimination-tree path to the root. This is what
-//!   the contact compliance is built from.
+//!   lie only on the node's elimination-tree path to the root, or of up to
+//!   eight nodes at once, each block on the union of their paths applied to
+//!   all of them in vector lanes (`nodes_forward_solve`, the same columns to
+//!   the bit). This is what the contact compliance is built from.
 
 use std::sync::Arc;
 
