@@ -486,25 +486,7 @@ mod tests {
     /// range, more than one batch of them.
     #[test]
     fn columns_in_batches_are_the_single_ones() {
-        let mesh = crate::mesh::generate::box_mesh(
-            crate::math::Vec3::zeros(),
-            crate::math::Vec3::new(1.0, 1.0, 2.0),
-            [3, 3, 6],
-        )
-        .unwrap();
-        let pattern = crate::fem::assembly::BlockPattern::new(mesh.num_vertices(), mesh.tets());
-        let sym = std::sync::Arc::new(super::super::ldlt::LdltSymbolic::new(&pattern).unwrap());
-        let mut f = sym.alloc_factor();
-        let val = |i: usize| ((i as f64) * 0.618).sin() * 0.3;
-        for (p, b) in f.l.iter_mut().enumerate() {
-            *b = Mat3::from_fn(|r, c| val(9 * p + 3 * c + r));
-        }
-        for (k, d) in f.ldiag.iter_mut().enumerate() {
-            *d = [val(7 * k), val(7 * k + 1), val(7 * k + 2)];
-        }
-        for (k, d) in f.d.iter_mut().enumerate() {
-            *d = crate::math::Vec3::new(1.0 + val(5 * k).abs(), 2.0, 0.5 + val(5 * k + 1).abs());
-        }
+        let (sym, f) = super::super::ldlt::tests::arbitrary_factor([3, 3, 6]);
         let n = sym.n;
         let key = FactorKey::Own(3);
         let first = [4usize, 9];

@@ -1291,7 +1291,7 @@ fn sub_products_avx2(l: &[Mat3], rows: &[usize], z: &Mat3, work: &mut [Mat3]) {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
 
     /// Arbitrary but reproducible values.
@@ -1409,7 +1409,7 @@ mod tests {
     }
 
     /// A factor of a box mesh's pattern with arbitrary blocks and pivots.
-    fn arbitrary_factor(cells: [usize; 3]) -> (Arc<LdltSymbolic>, LdltFactor) {
+    pub(crate) fn arbitrary_factor(cells: [usize; 3]) -> (Arc<LdltSymbolic>, LdltFactor) {
         let mesh = crate::mesh::generate::box_mesh(Vec3::zeros(), Vec3::new(1.0, 1.0, 2.0), cells)
             .unwrap();
         let pattern = BlockPattern::new(mesh.num_vertices(), mesh.tets());

@@ -455,7 +455,7 @@ fn run_one(
         progress(Progress::Step);
         stepped_ms += ms;
         if let Some(b) = budget
-            && stepped_ms > b.ms
+            && stepped_ms > b.factor * b.reference_ms
             && step + 1 < steps
         {
             run.stopped = Some(format!(
@@ -472,13 +472,12 @@ fn run_one(
     run
 }
 
-/// A variant run's time budget in milliseconds, `ms`: `factor` times the
-/// reference run's stepping time, `reference_ms`.
+/// A variant run's time budget: `factor` times the reference run's
+/// stepping time, `reference_ms` (milliseconds).
 #[derive(Debug, Clone, Copy)]
 struct Budget {
     factor: f64,
     reference_ms: f64,
-    ms: f64,
 }
 
 /// How long [`run_case`] lets a variant run step, as a multiple of the
@@ -541,7 +540,6 @@ pub fn run_case_within(
     let budget = time_factor.is_finite().then_some(Budget {
         factor: time_factor,
         reference_ms,
-        ms: time_factor * reference_ms,
     });
     let nodes = ref_x.first().map_or(0, Vec::len);
     let mut runs = Vec::new();
