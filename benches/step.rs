@@ -1,7 +1,7 @@
 //! One implicit step of the paper-size lens (1183 nodes, 5184 tets, nucleus 5× stiffer)
 //! for each preconditioner, while the lens is squeezed and twisted.
 //!
-//! Run: `cargo bench --bench step` (`-- lens_assemble` for the assembly alone, `-- factorize` for one numeric factorization at three resolutions with each kernel, `-- lens_round_to_single` for its single-precision copy, `-- lens_backward` for one backward sweep with the factor, `-- lens_forward_single` for one forward sweep and `-- lens_solve_single` for one preconditioner solve with its single-precision copy, `-- lens_solve_many6` for six right-hand sides at once (`-- lens_forward_many6` their forward half), `-- lens_w` for `W` of a jam-sized contact set).
+//! Run: `cargo bench --bench step` (`-- lens_assemble` for the assembly alone, `-- factorize` for one numeric factorization at three resolutions with each kernel, `-- lens_round_to` for its single- and half-precision copies, `-- lens_backward` for one backward sweep with the factor, `-- lens_forward_single` for one forward sweep and `-- lens_solve_single` for one solve with its single-precision copy, `-- lens_solve_half` for one preconditioner solve with its half-precision copy, `-- lens_solve_many6` for six right-hand sides at once (`-- lens_forward_many6` their forward half), `-- lens_w` for `W` of a jam-sized contact set).
 
 use bevy_soft_tissue::core_prelude::*;
 use bevy_soft_tissue::mesh::generate::LENS_RADII;
@@ -120,6 +120,15 @@ fn bench_backward(c: &mut Criterion) {
     c.bench_function("lens_solve_single", |b| {
         b.iter(|| f.solve_single(&y0, &mut x1, &mut t1))
     });
+    if f.round_to_half() {
+        c.bench_function("lens_round_to_half", |b| b.iter(|| f.round_to_half()));
+        let mut t32 = vec![[0.0f32; 4]; n];
+        c.bench_function("lens_solve_half", |b| {
+            b.iter(|| f.solve_half(&y0, &mut x1, &mut t1, &mut t32))
+        });
+    } else {
+        eprintln!("lens_solve_half: not measured (no AVX2/FMA/F16C)");
+    }
     let b6: Vec<[Vec3; 6]> = (0..n)
         .map(|i| std::array::from_fn(|c| v3(1.0, -0.5 * c as f64, 0.25 * i as f64)))
         .collect();

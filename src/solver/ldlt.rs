@@ -30,6 +30,7 @@
 
 use std::sync::Arc;
 
+use super::half::{HalfCopy, Structure};
 use super::ordering::{Ordering, Permutation};
 use super::supernodal::{FactorParts, SupernodalBuffers, SupernodalPlan};
 
@@ -119,6 +120,9 @@ pub struct LdltFactor {
     /// Whether `l32` holds the copy of the current `l` (cleared by each
     /// factorization into this factor).
     single: bool,
+    /// The preconditioner's half-precision copy ([`Self::round_to_half`]),
+    /// invalidated with `single`.
+    half: HalfCopy,
     /// The supernodal kernel's buffers (empty for the blocked kernel).
     supernodal: SupernodalBuffers,
 }
@@ -281,6 +285,7 @@ impl LdltSymbolic {
             d: vec![Vec3::zeros(); self.n],
             l32: Vec::new(),
             single: false,
+            half: HalfCopy::default(),
             supernodal: self
                 .supernodal
                 .as_ref()
@@ -299,6 +304,7 @@ impl LdltSymbolic {
     ) -> Result<()> {
         let n = self.n;
         out.single = false;
+        out.half.invalidate();
         if let Some(plan) = &self.supernodal {
             let parts = FactorParts {
                 l: &mut out.l,
@@ -764,6 +770,7 @@ impl LdltFactor {
         self.ldiag.copy_from_slice(&other.ldiag);
         self.d.copy_from_slice(&other.d);
         self.single = false;
+        self.half.invalidate();
     }
 
     /// Solves `(L̃ D L̃ᵀ) x = b` like [`Self::solve`], with `L̃` the
@@ -777,6 +784,47 @@ impl LdltFactor {
             self.solve_with::<true>(b, x, tmp);
         } else {
             self.solve_with::<false>(b, x, tmp);
+        }
+    }
+
+    /// Makes the preconditioner's half-precision copy of the factor for
+    /// [`Self::solve_half`] (`L` in IEEE binary16, the diagonal blocks and
+    /// `D⁻¹` in `f32`; see the module docs of [`crate::solver`], "Half and
+    /// single precision"). The copy holds until the next
+    /// factorization into this factor, and must be made again after the
+    /// values are changed by hand. Returns whether it was made: not where the
+    /// CPU lacks AVX2, FMA or F16C, nor where an entry of `L` is beyond
+    /// binary16's 65 504 or the pivots do not fit `f32` (then
+    /// [`Self::solve_half`] solves like [`Self::solve_single`]). Allocates on
+    /// the first call only.
+    pub fn round_to_half(&mut self) -> bool {
+        self.half.make(&self.l, &self.ldiag, &self.d)
+    }
+
+    /// Whether a half-precision copy is in place (see [`Self::round_to_half`]).
+    pub fn has_half(&self) -> bool {
+        self.half.is_valid()
+    }
+
+    /// Solves `(L̃ D L̃ᵀ) x = b` like [`Self::solve`], with `L̃` the
+    /// half-precision copy of `L` and `f32` arithmetic when there is a copy
+    /// ([`Self::round_to_half`], scratch `tmp32`), otherwise as
+    /// [`Self::solve_single`] (scratch `tmp`). For a preconditioner: `L̃ D L̃ᵀ`
+    /// is symmetric positive definite and within about 10⁻³ of `L D Lᵀ`, and
+    /// a solve reads a quarter of the memory of one in `f64`. Both scratch
+    /// slices hold `n` entries.
+    pub fn solve_half(&self, b: &[Vec3], x: &mut [Vec3], tmp: &mut [Vec3], tmp32: &mut [[f32; 4]]) {
+        if self.has_half() {
+            let s = &*self.symbolic;
+            let structure = Structure {
+                perm: &s.perm,
+                col_ptr: &s.col_ptr,
+                row_idx: &s.row_idx,
+                joins_next: &s.joins_next,
+            };
+            self.half.solve(structure, b, x, tmp32);
+        } else {
+            self.solve_single(b, x, tmp);
         }
     }
 
@@ -1605,7 +1653,235 @@ pub(crate) mod tests {
         assert!(!f.has_single());
     }
 
-    /// Factorizing drops the single-precision copy of the previous values.
+    /// Whether the half-precision copy can be made here; says so when not.
+    fn half_supported() -> bool {
+        let ok = super::super::half::supported();
+        if !ok {
+            eprintln!("SKIPPED: no AVX2/FMA/F16C, the half-precision copy is not made");
+        }
+        ok
+    }
+
+    /// `max_i (|L| |D| |Lᵀ| 1)_i`, the ∞-norm of `|L| |D| |Lᵀ|` (unit
+    /// diagonal blocks included), which bounds what rounding `L` moves
+    /// `L D Lᵀ` by.
+    fn abs_product_norm(f: &LdltFactor) -> f64 {
+        let s = &*f.symbolic;
+        let unit = |l: &[f64; 3]| {
+            Mat3::new(
+                1.0,
+                0.0,
+                0.0,
+                l[0].abs(),
+                1.0,
+                0.0,
+                l[1].abs(),
+                l[2].abs(),
+                1.0,
+            )
+        };
+        let ones = Vec3::repeat(1.0);
+        let mut w: Vec<Vec3> = (0..s.n)
+            .map(|j| unit(&f.ldiag[j]).transpose() * ones)
+            .collect();
+        for j in 0..s.n {
+            for p in s.col_ptr[j]..s.col_ptr[j + 1] {
+                w[j] += f.l[p].abs().transpose() * ones;
+            }
+        }
+        let v: Vec<Vec3> = w
+            .iter()
+            .zip(&f.d)
+            .map(|(w, d)| w.component_mul(&d.abs()))
+            .collect();
+        let mut u: Vec<Vec3> = (0..s.n).map(|j| unit(&f.ldiag[j]) * v[j]).collect();
+        for j in 0..s.n {
+            for p in s.col_ptr[j]..s.col_ptr[j + 1] {
+                u[s.row_idx[p]] += f.l[p].abs() * v[j];
+            }
+        }
+        u.iter().map(|x| x.max()).fold(0.0, f64::max)
+    }
+
+    fn inf_norm(x: &[Vec3]) -> f64 {
+        x.iter().map(|v| v.amax()).fold(0.0, f64::max)
+    }
+
+    /// The half-precision solve of a real factor (an SPD matrix's, several
+    /// supernode shapes): its residual against the matrix is within what
+    /// rounding `L` to binary16 and the arithmetic to `f32` can leave (the
+    /// first-order bound `(2·2⁻¹¹ + 4n·2⁻²⁴) ‖|L||D||Lᵀ|‖ ‖x‖`), it is not
+    /// the single-precision solve (the copy is binary16), it is symmetric and
+    /// positive as a preconditioner must be, and it scales exactly with the
+    /// right-hand side (powers of two, far outside `f32`'s range).
+    #[test]
+    fn half_precision_solve() {
+        if !half_supported() {
+            return;
+        }
+        let (pattern, a) = spd_matrix([3, 3, 5]);
+        let sym = Arc::new(LdltSymbolic::new(&pattern).unwrap());
+        let n = sym.n;
+        assert!(sym.joined_columns() > 0);
+        let mut f = sym.alloc_factor();
+        sym.factorize(&a, &mut f, &mut Vec::new()).unwrap();
+        assert!(!f.has_half());
+        assert!(f.round_to_single());
+        assert!(f.round_to_half());
+        assert!(f.has_half());
+        let b: Vec<Vec3> = (0..n)
+            .map(|i| Vec3::new(val(3 * i + 7), val(3 * i + 8) - 0.5, val(3 * i + 9) + 0.2))
+            .collect();
+        let (mut xh, mut xs, mut tmp) = (b.clone(), b.clone(), b.clone());
+        let mut t32 = vec![[0.0f32; 4]; n];
+        f.solve_half(&b, &mut xh, &mut tmp, &mut t32);
+        f.solve_single(&b, &mut xs, &mut tmp);
+        let mut ax = b.clone();
+        a.mul_vec(&xh, &mut ax);
+        let residual = inf_norm(&ax.iter().zip(&b).map(|(p, q)| p - q).collect::<Vec<_>>());
+        let bound = (2.0 * 2f64.powi(-11) + 4.0 * n as f64 * 2f64.powi(-24))
+            * abs_product_norm(&f)
+            * inf_norm(&xh);
+        assert!(residual <= bound, "residual {residual:e} above {bound:e}");
+        // Binary16, not f32: the single-precision solve is 2¹³ times closer.
+        a.mul_vec(&xs, &mut ax);
+        let residual_single = inf_norm(&ax.iter().zip(&b).map(|(p, q)| p - q).collect::<Vec<_>>());
+        assert!(
+            residual > 8.0 * residual_single,
+            "{residual:e} vs {residual_single:e}"
+        );
+        // Symmetric (the backward sweep reads the same rounded blocks as the
+        // forward one) and positive.
+        let u: Vec<Vec3> = (0..n)
+            .map(|i| Vec3::new(val(5 * i + 1), -val(5 * i + 2), 0.3 - val(5 * i + 3)))
+            .collect();
+        let mut xu = b.clone();
+        f.solve_half(&u, &mut xu, &mut tmp, &mut t32);
+        let dot = |p: &[Vec3], q: &[Vec3]| p.iter().zip(q).map(|(x, y)| x.dot(y)).sum::<f64>();
+        let (ub, bu) = (dot(&u, &xh), dot(&b, &xu));
+        let norm = |p: &[Vec3]| dot(p, p).sqrt();
+        assert!(
+            (ub - bu).abs() <= 8.0 * n as f64 * 2f64.powi(-24) * norm(&u) * norm(&xh),
+            "{ub} vs {bu}"
+        );
+        assert!(dot(&b, &xh) > 0.0 && dot(&u, &xu) > 0.0);
+        // The right-hand side is scaled before it meets f32: exact for powers
+        // of two, whatever their size.
+        for e in [-1000, -100, 100, 1000] {
+            let s = 2f64.powi(e);
+            let bs: Vec<Vec3> = b.iter().map(|v| v * s).collect();
+            let mut x = b.clone();
+            f.solve_half(&bs, &mut x, &mut tmp, &mut t32);
+            for (p, q) in x.iter().zip(&xh) {
+                assert_eq!(*p, q * s, "2^{e}");
+            }
+        }
+        // A zero right-hand side gives zero; a non-finite one, not a number
+        // (CG then stops, as with a solve in f64).
+        let zero = vec![Vec3::zeros(); n];
+        let mut x = b.clone();
+        f.solve_half(&zero, &mut x, &mut tmp, &mut t32);
+        assert!(x.iter().all(|v| *v == Vec3::zeros()));
+        let mut bad = b.clone();
+        bad[3].y = f64::INFINITY;
+        f.solve_half(&bad, &mut x, &mut tmp, &mut t32);
+        assert!(x.iter().all(|v| v.iter().all(|c| c.is_nan())));
+    }
+
+    /// The half-precision kernels against the double-precision solve on a
+    /// factor whose values binary16 and `f32` hold exactly (multiples of
+    /// 2⁻¹⁰ below 2, pivots powers of two): only the `f32` arithmetic
+    /// differs, so the two agree to `f32` round-off, over pairs and triples
+    /// of joined columns and lone ones.
+    #[test]
+    fn half_precision_kernels_match_the_double_solve() {
+        if !half_supported() {
+            return;
+        }
+        let (sym, mut f) = arbitrary_factor([2, 2, 4]);
+        let n = sym.n;
+        assert!(sym.joins_next.windows(2).any(|w| w[0] && w[1]));
+        let exact = |v: f64| (v * 1024.0).round() / 1024.0;
+        for b in &mut f.l {
+            *b = b.map(|v| exact(v * 0.5));
+        }
+        for d in &mut f.ldiag {
+            *d = d.map(exact);
+        }
+        for (k, d) in f.d.iter_mut().enumerate() {
+            *d = Vec3::new(1.0, 2f64.powi((k % 5) as i32), 0.5);
+        }
+        assert!(f.round_to_half());
+        let b: Vec<Vec3> = (0..n)
+            .map(|i| Vec3::new(val(3 * i + 1000), val(3 * i + 1001), val(3 * i + 1002)))
+            .collect();
+        let (mut x, mut xh, mut tmp) = (b.clone(), b.clone(), b.clone());
+        let mut t32 = vec![[0.0f32; 4]; n];
+        f.solve(&b, &mut x, &mut tmp);
+        f.solve_half(&b, &mut xh, &mut tmp, &mut t32);
+        let scale = inf_norm(&x).max(inf_norm(&b));
+        let worst = x
+            .iter()
+            .zip(&xh)
+            .map(|(p, q)| (p - q).amax())
+            .fold(0.0, f64::max);
+        // The three sweeps add up at most `n` terms per entry, each rounded
+        // to f32 (2⁻²⁴), from a right-hand side rounded to f32.
+        assert!(
+            worst <= 4.0 * n as f64 * 2f64.powi(-24) * scale,
+            "{worst:e}"
+        );
+        assert!(worst > 0.0, "the solve ran in f32");
+    }
+
+    /// No half-precision copy where an entry does not fit (beyond binary16's
+    /// 65 504 in `L`, a pivot that is not positive and finite, a diagonal
+    /// block beyond `f32`): the solve is then the single-precision one. A new
+    /// factorization or copied values drop the copy.
+    #[test]
+    fn half_precision_copy_refused_and_dropped() {
+        if !half_supported() {
+            return;
+        }
+        let (sym, mut f) = arbitrary_factor([2, 2, 3]);
+        let n = sym.n;
+        assert!(f.round_to_single());
+        let b: Vec<Vec3> = (0..n)
+            .map(|i| Vec3::new(val(i), 1.0, -val(2 * i)))
+            .collect();
+        let (mut xh, mut xs, mut tmp) = (b.clone(), b.clone(), b.clone());
+        let mut t32 = vec![[0.0f32; 4]; n];
+        f.l[2][(2, 1)] = 65504.0;
+        assert!(f.round_to_half());
+        type Edit = fn(&mut LdltFactor);
+        let edits: [(&str, Edit); 7] = [
+            ("L beyond binary16", |f| f.l[2][(2, 1)] = 65520.0),
+            ("L not a number", |f| f.l[2][(2, 1)] = f64::NAN),
+            ("L infinite", |f| f.l[2][(0, 0)] = f64::NEG_INFINITY),
+            ("zero pivot", |f| f.d[1].y = 0.0),
+            ("negative pivot", |f| f.d[4].z = -1.0),
+            ("pivots beyond f32's range apart", |f| f.d[0].x = 1e-40),
+            ("diagonal block beyond f32", |f| f.ldiag[3][1] = 1e39),
+        ];
+        for (what, edit) in edits {
+            let mut g = f.clone();
+            assert!(g.round_to_half(), "{what}: before");
+            edit(&mut g);
+            assert!(!g.round_to_half() && !g.has_half(), "{what}");
+            if g.round_to_single() {
+                g.solve_half(&b, &mut xh, &mut tmp, &mut t32);
+                g.solve_single(&b, &mut xs, &mut tmp);
+                assert_eq!(xh, xs, "{what}");
+            }
+        }
+        assert!(f.round_to_half());
+        let other = f.clone();
+        f.copy_values_from(&other);
+        assert!(!f.has_half());
+    }
+
+    /// Factorizing drops the single- and half-precision copies of the
+    /// previous values.
     #[test]
     fn factorizing_drops_the_single_copy() {
         let mesh =
@@ -1621,8 +1897,10 @@ pub(crate) mod tests {
         let mut f = sym.alloc_factor();
         sym.factorize(&a, &mut f, &mut Vec::new()).unwrap();
         assert!(f.round_to_single());
+        assert!(f.round_to_half() || !super::super::half::supported());
         sym.factorize(&a, &mut f, &mut Vec::new()).unwrap();
         assert!(!f.has_single());
+        assert!(!f.has_half());
     }
 
     /// Solving several right-hand sides at once gives what solving each gives,

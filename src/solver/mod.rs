@@ -47,18 +47,30 @@
 //! phase's consistency refreshes from 57 to 34 a run (see the README, "One
 //! turn for the whole body").
 //!
-//! ## Single precision
-//! The lagged kinds (`Periodic`, `Async`, `AsyncLagged`) solve with `L`
-//! rounded to `f32` ([`LdltFactor::round_to_single`], made with each factor:
-//! by the worker for the async kinds; [`LdltFactor::solve_single`]). A
-//! triangular solve reads all of `L`, which for the paper-size lens (66 000
-//! 3×3 blocks, 4.7 MB in `f64`) does not fit a core's cache; in `f32` it reads
-//! half as much. `L̃ D L̃ᵀ` is as symmetric and positive definite as `L D Lᵀ`,
-//! the arithmetic stays in `f64`, and CG still stops on its own residual
-//! tolerance. The rounding (a relative 6·10⁻⁸ per entry) is far below what a
-//! factor several steps old differs from the current matrix by. `Exact`
-//! keeps `f64` as the reference, and so do the contact compliance and the
-//! correction, which must agree with each other.
+//! ## Half and single precision
+//! The lagged kinds (`Periodic`, `Async`, `AsyncLagged`) keep two rounded
+//! copies of each factor, made with it (by the worker for the async kinds):
+//! `L` in `f32` ([`LdltFactor::round_to_single`]) and `L` in IEEE binary16
+//! with the diagonal blocks and `D⁻¹` in `f32` ([`LdltFactor::round_to_half`]).
+//! A triangular solve reads all of `L`, which for the paper-size lens (66 000
+//! 3×3 blocks) is 4.7 MB in `f64`, 2.4 MB in `f32` (still a little more than a
+//! core's L2 cache on the development machine) and 1.2 MB in binary16.
+//!
+//! The CG preconditioner solves with the binary16 copy in `f32` arithmetic
+//! ([`LdltFactor::solve_half`]): one solve of the lens 130 µs against 206 µs
+//! with the `f32` copy in `f64` arithmetic (`cargo bench --bench step --
+//! lens_solve`). The rounding (a relative 4.9·10⁻⁴ per entry of `L`) leaves
+//! `L̃ D L̃ᵀ` symmetric positive definite and within about 10⁻³ of `L D Lᵀ`;
+//! CG still stops on its own residual tolerance, so only the iteration count
+//! moves. Each solve of a `lag2` cataract run done both ways: a solve that
+//! takes one iteration with the `f32` copy takes two (the lens) or three (the
+//! eye) with binary16, one of three to eleven about as many, one of twenty
+//! and more a tenth more; over the run the lens's CG took 11 % more
+//! iterations and 21 % less time, the eye's 32 % more and 13 % less. Where
+//! the CPU lacks F16C, or an entry does not fit binary16, the
+//! preconditioner solves with the `f32` copy. The contact correction keeps
+//! the `f32` copy for its backward sweep and `f64` for `W`, which must agree
+//! with each other; `Exact` keeps `f64` as the reference.
 //!
 //! ## Rescue
 //! The warp follows rotations, not changes of shape. If CG runs out of
@@ -119,6 +131,7 @@
 
 pub mod cg;
 pub mod columns;
+mod half;
 pub mod ldlt;
 pub mod ordering;
 pub mod supernodal;
@@ -319,6 +332,8 @@ pub struct PreconditionerState {
     work: Vec<Mat3>,
     tmp: Vec<Vec3>,
     tmp2: Vec<Vec3>,
+    /// Scratch of the half-precision solve.
+    tmp32: Vec<[f32; 4]>,
     alt: Vec<Vec3>,
     prefetch: ColumnPrefetch,
     /// The last error of a background factorization (see [`Self::last_error`]).
@@ -365,6 +380,7 @@ impl PreconditionerState {
             work: Vec::with_capacity(n),
             tmp: vec![Vec3::zeros(); n],
             tmp2: vec![Vec3::zeros(); n],
+            tmp32: vec![[0.0; 4]; n],
             alt: vec![Vec3::zeros(); n],
             prefetch: ColumnPrefetch::default(),
             warp_choice: None,
@@ -519,9 +535,11 @@ impl PreconditionerState {
         });
         let res = sym.factorize(a, &mut st.factor, &mut self.work);
         if res.is_ok() && self.kind.needs_rotations() {
-            // The lagged kinds solve with `L` in single precision (see the
-            // module docs); `Exact` stays the double-precision reference.
+            // The lagged kinds solve with `L` in half precision (see the
+            // module docs; the single-precision copy is the contact
+            // correction's); `Exact` stays the double-precision reference.
             st.factor.round_to_single();
+            st.factor.round_to_half();
         }
         let dt = t0.elapsed().as_secs_f64();
         self.stats.factor_seconds = dt;
@@ -732,12 +750,13 @@ impl Preconditioner for PreconditionerState {
                     for i in 0..r.len() {
                         self.tmp2[i] = st.warp[i].transpose() * r[i];
                     }
-                    st.factor.solve_single(&self.tmp2, z, &mut self.tmp);
+                    st.factor
+                        .solve_half(&self.tmp2, z, &mut self.tmp, &mut self.tmp32);
                     for zi in z.iter_mut().zip(&st.warp) {
                         *zi.0 = zi.1 * *zi.0;
                     }
                 } else {
-                    st.factor.solve_single(r, z, &mut self.tmp);
+                    st.factor.solve_half(r, z, &mut self.tmp, &mut self.tmp32);
                 }
             }
             (_, None) => z.copy_from_slice(r),

@@ -139,9 +139,11 @@ impl AsyncFactorizer {
                         }
                         let result = sym.factorize(&mat, &mut job.factor, &mut work);
                         if result.is_ok() {
-                            // The preconditioner solves with `L` in single
-                            // precision (see the module docs of `super`).
+                            // The preconditioner solves with `L` in half
+                            // precision, the contact correction in single
+                            // (see the module docs of `super`).
                             job.factor.round_to_single();
+                            job.factor.round_to_half();
                         }
                         // The compliance's node columns of the new factor, here
                         // rather than on the stepping thread.
