@@ -57,16 +57,17 @@
 //! core's L2 cache on the development machine) and 1.2 MB in binary16.
 //!
 //! The CG preconditioner solves with the binary16 copy in `f32` arithmetic
-//! ([`LdltFactor::solve_half`]): one solve of the lens 130 µs against 206 µs
-//! with the `f32` copy in `f64` arithmetic (`cargo bench --bench step --
-//! lens_solve`). The rounding (a relative 4.9·10⁻⁴ per entry of `L`) leaves
+//! ([`LdltFactor::solve_half`]) once the body's previous solve took
+//! [`HALF_FROM_ITERATIONS`] iterations or more, with the `f32` copy before
+//! ([`PreconditionerStats::half_solves`] counts the former): one solve of the
+//! lens 130 µs against 206 µs with the `f32` copy in `f64` arithmetic
+//! (`cargo bench --bench step -- lens_solve`). The rounding (a relative 4.9·10⁻⁴ per entry of `L`) leaves
 //! `L̃ D L̃ᵀ` symmetric positive definite and within about 10⁻³ of `L D Lᵀ`;
 //! CG still stops on its own residual tolerance, so only the iteration count
 //! moves. Each solve of a `lag2` cataract run done both ways: a solve that
 //! takes one iteration with the `f32` copy takes two (the lens) or three (the
-//! eye) with binary16, one of three to eleven about as many, one of twenty
-//! and more a tenth more; over the run the lens's CG took 11 % more
-//! iterations and 21 % less time, the eye's 32 % more and 13 % less. Where
+//! eye) with binary16, one of two 3.6 or 3.2, one of three to eleven about
+//! as many, one of twenty and more a tenth more; hence the threshold. Where
 //! the CPU lacks F16C, or an entry does not fit binary16, the
 //! preconditioner solves with the `f32` copy. The contact correction keeps
 //! the `f32` copy for its backward sweep and `f64` for `W`, which must agree
@@ -259,6 +260,9 @@ pub struct PreconditionerStats {
     /// Node columns the background worker solved with its new factors for the
     /// contact compliance (see [`crate::contact::compliance`]).
     pub precomputed_columns: u64,
+    /// CG solves with the factor's half-precision copy (see
+    /// [`HALF_FROM_ITERATIONS`]).
+    pub half_solves: u64,
 }
 
 /// Which rotation warp a lagging factor is applied with (see the module docs).
@@ -341,8 +345,23 @@ pub struct PreconditionerState {
     /// Factor version the warp was last chosen for, and the choice (`None`:
     /// the unwarped factor).
     warp_choice: Option<(u64, Option<WarpKind>)>,
+    /// Whether this CG solve uses the factor's half-precision copy (see
+    /// [`HALF_FROM_ITERATIONS`]).
+    half_now: bool,
+    /// Solves with the factor in the current CG solve, one an iteration.
+    applies: usize,
     stats: PreconditionerStats,
 }
+
+/// A CG solve with a lagging factor uses the factor's half-precision copy
+/// ([`LdltFactor::solve_half`]) when the body's previous solve took this many
+/// iterations or more, and the single-precision copy otherwise: where the
+/// factor fits the matrix so well that CG converges in one or two iterations,
+/// binary16's rounding is what CG would iterate against (one such solve took
+/// 1.9 to 3 iterations with it, in the cataract); from three on, the factor's
+/// own misfit dominates and binary16 costs no iterations (see the module
+/// docs, "Half and single precision").
+pub const HALF_FROM_ITERATIONS: usize = 3;
 
 impl PreconditionerState {
     /// A preconditioner of `kind` for matrices over `a`'s pattern.
@@ -384,6 +403,8 @@ impl PreconditionerState {
             alt: vec![Vec3::zeros(); n],
             prefetch: ColumnPrefetch::default(),
             warp_choice: None,
+            half_now: false,
+            applies: 0,
             last_error: None,
             stats: PreconditionerStats::default(),
         })
@@ -673,7 +694,50 @@ impl PreconditionerState {
                 st.switch_warp_kind(kind);
             }
         }
-        self.apply(r, z);
+        self.solve_with_factor(r, z);
+    }
+
+    /// Starts a CG solve: chooses the copy of the factor it solves with (see
+    /// [`HALF_FROM_ITERATIONS`]) and counts the first residual's solve.
+    fn start_solve(&mut self) {
+        self.half_now = self.applies >= HALF_FROM_ITERATIONS;
+        self.applies = 1;
+        if self.half_now && self.state.as_ref().is_some_and(|st| st.factor.has_half()) {
+            self.stats.half_solves += 1;
+        }
+    }
+
+    /// `z = P⁻¹ r`, uncounted.
+    fn solve_with_factor(&mut self, r: &[Vec3], z: &mut [Vec3]) {
+        match (&self.kind, &self.state) {
+            (PreconditionerKind::None, _) => z.copy_from_slice(r),
+            (PreconditionerKind::Jacobi, _) => {
+                for i in 0..r.len() {
+                    z[i] = r[i].component_mul(&self.jacobi[i]);
+                }
+            }
+            (_, Some(st)) => {
+                let rhs = if st.warped {
+                    for i in 0..r.len() {
+                        self.tmp2[i] = st.warp[i].transpose() * r[i];
+                    }
+                    &self.tmp2
+                } else {
+                    r
+                };
+                if self.half_now {
+                    st.factor.solve_half(rhs, z, &mut self.tmp, &mut self.tmp32);
+                } else {
+                    st.factor.solve_single(rhs, z, &mut self.tmp);
+                }
+                if st.warped {
+                    for zi in z.iter_mut().zip(&st.warp) {
+                        *zi.0 = zi.1 * *zi.0;
+                    }
+                }
+            }
+            (_, None) => z.copy_from_slice(r),
+        }
     }
 }
 
@@ -685,13 +749,14 @@ impl Preconditioner for PreconditionerState {
     /// choice holds for the factor's later steps and is tried again when the
     /// factor is 4, 8, 16, … steps old.
     fn apply_first(&mut self, a: &BlockCsr, r: &[Vec3], z: &mut [Vec3], q: &mut [Vec3]) {
+        self.start_solve();
         let Some((version, turned)) = self
             .state
             .as_ref()
             .filter(|st| st.rotated)
             .map(|st| (st.version, st.body_warp != Mat3::identity()))
         else {
-            return self.apply(r, z);
+            return self.solve_with_factor(r, z);
         };
         self.stats.warp_offered += 1;
         // Decided once per factor, and again as it ages (4, 8, 16, … steps).
@@ -738,28 +803,7 @@ impl Preconditioner for PreconditionerState {
     }
 
     fn apply(&mut self, r: &[Vec3], z: &mut [Vec3]) {
-        match (&self.kind, &self.state) {
-            (PreconditionerKind::None, _) => z.copy_from_slice(r),
-            (PreconditionerKind::Jacobi, _) => {
-                for i in 0..r.len() {
-                    z[i] = r[i].component_mul(&self.jacobi[i]);
-                }
-            }
-            (_, Some(st)) => {
-                if st.warped {
-                    for i in 0..r.len() {
-                        self.tmp2[i] = st.warp[i].transpose() * r[i];
-                    }
-                    st.factor
-                        .solve_half(&self.tmp2, z, &mut self.tmp, &mut self.tmp32);
-                    for zi in z.iter_mut().zip(&st.warp) {
-                        *zi.0 = zi.1 * *zi.0;
-                    }
-                } else {
-                    st.factor.solve_half(r, z, &mut self.tmp, &mut self.tmp32);
-                }
-            }
-            (_, None) => z.copy_from_slice(r),
-        }
+        self.applies += 1;
+        self.solve_with_factor(r, z);
     }
 }

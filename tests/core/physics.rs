@@ -191,6 +191,62 @@ fn lens_cg_iterations_per_preconditioner() {
     );
 }
 
+/// A lagging factor's CG solves with the half-precision copy exactly when the
+/// body's previous solve took `HALF_FROM_ITERATIONS` iterations or more (where
+/// the CPU makes the copy), and converges either way: the lens squeezed and
+/// twisted, its factor refreshed every 16 steps.
+#[test]
+fn half_precision_preconditioner_follows_the_previous_solve() {
+    use bevy_soft_tissue::solver::HALF_FROM_ITERATIONS;
+    let mesh = generate::ellipsoid(LENS_RADII, 8).unwrap();
+    let settings = BodySettings {
+        preconditioner: PreconditionerKind::Periodic { every: 16 },
+        ..Default::default()
+    };
+    let mut body = DeformableBody::new(mesh.clone(), lens_material(), settings).unwrap();
+    let top: Vec<usize> = (0..mesh.num_vertices())
+        .filter(|&i| mesh.positions()[i].z > 1.2e-3)
+        .collect();
+    body.fix_where(|p| p.z < -1.2e-3);
+    let steps = 48;
+    let (mut previous, mut half, mut single) = (0, 0, 0);
+    for s in 0..steps {
+        let t = (s + 1) as f64 / steps as f64;
+        let rot = Rotation3::from_axis_angle(&Vec3::z_axis(), t * 45f64.to_radians());
+        for &i in &top {
+            let p = mesh.positions()[i];
+            body.drive_node(i, rot * v3(p.x, p.y, p.z - t * 1.0e-3))
+                .unwrap();
+        }
+        let before = body.preconditioner().stats().half_solves;
+        let r = body.step(0.02).unwrap();
+        assert!(r.cg.converged, "step {s}: {:?}", r.cg);
+        assert_eq!(r.preconditioner.rescues, 0, "step {s}");
+        let has_half = body
+            .preconditioner()
+            .factor_state()
+            .is_some_and(|st| st.factor.has_half());
+        if !has_half {
+            eprintln!("SKIPPED: no half-precision copy on this CPU (no AVX2/FMA/F16C)");
+            return;
+        }
+        let used = body.preconditioner().stats().half_solves - before;
+        assert_eq!(
+            used,
+            u64::from(previous >= HALF_FROM_ITERATIONS),
+            "step {s}: previous solve {previous} iterations"
+        );
+        half += used;
+        single += 1 - used;
+        previous = r.cg.iterations;
+    }
+    // Both copies were used.
+    assert!(
+        half > 0 && single > 0,
+        "{half} with binary16, {single} with f32"
+    );
+}
+
 /// A graded beam with a 10⁴ stiffness contrast and element size ratio ≥ 20.
 #[test]
 fn hard_case_stays_stable() {
