@@ -365,61 +365,13 @@ impl HalfCopy {
             // SAFETY (the three cases): blocks of `L` and rows below `n`
             // (the structure of `sym`).
             if j > 1 && sym.joins_next[j - 1] && sym.joins_next[j - 2] {
-                // Columns `j − 2`, `j − 1` and `j`.
-                let (h, i) = (j - 2, j - 1);
-                let (start, end) = (sym.col_ptr[j], sym.col_ptr[j + 1]);
-                let (start_i, start_h) = (sym.col_ptr[i] + 1, sym.col_ptr[h] + 2);
-                let mut acc_h = [zero; 3];
-                let mut acc_i = [zero; 3];
-                let mut acc_j = [zero; 3];
-                unsafe {
-                    for t in (0..end - start).rev() {
-                        let v = _mm_loadu_ps(yp.add(4 * sym.row_idx[start + t]));
-                        for k in 0..3 {
-                            acc_h[k] = _mm_fmadd_ps(self.col(start_h + t, k), v, acc_h[k]);
-                            acc_i[k] = _mm_fmadd_ps(self.col(start_i + t, k), v, acc_i[k]);
-                            acc_j[k] = _mm_fmadd_ps(self.col(start + t, k), v, acc_j[k]);
-                        }
-                    }
-                    finish(j, acc_j);
-                    let v = _mm_loadu_ps(yp.add(4 * j));
-                    for k in 0..3 {
-                        acc_h[k] = _mm_fmadd_ps(self.col(start_h - 1, k), v, acc_h[k]);
-                        acc_i[k] = _mm_fmadd_ps(self.col(start_i - 1, k), v, acc_i[k]);
-                    }
-                    finish(i, acc_i);
-                    let v = _mm_loadu_ps(yp.add(4 * i));
-                    for k in 0..3 {
-                        acc_h[k] = _mm_fmadd_ps(self.col(start_h - 2, k), v, acc_h[k]);
-                    }
-                    finish(h, acc_h);
-                }
-                j = h;
+                unsafe { self.backward_group::<3>(sym, yp, j, &finish) };
+                j -= 2;
                 continue;
             }
             if j > 0 && sym.joins_next[j - 1] {
-                // Columns `j − 1` and `j`.
-                let i = j - 1;
-                let (start, end) = (sym.col_ptr[j], sym.col_ptr[j + 1]);
-                let start0 = sym.col_ptr[i] + 1;
-                let mut acc0 = [zero; 3];
-                let mut acc1 = [zero; 3];
-                unsafe {
-                    for t in (0..end - start).rev() {
-                        let v = _mm_loadu_ps(yp.add(4 * sym.row_idx[start + t]));
-                        for k in 0..3 {
-                            acc0[k] = _mm_fmadd_ps(self.col(start0 + t, k), v, acc0[k]);
-                            acc1[k] = _mm_fmadd_ps(self.col(start + t, k), v, acc1[k]);
-                        }
-                    }
-                    finish(j, acc1);
-                    let v = _mm_loadu_ps(yp.add(4 * j));
-                    for k in 0..3 {
-                        acc0[k] = _mm_fmadd_ps(self.col(start0 - 1, k), v, acc0[k]);
-                    }
-                    finish(i, acc0);
-                }
-                j = i;
+                unsafe { self.backward_group::<2>(sym, yp, j, &finish) };
+                j -= 1;
                 continue;
             }
             // A lone column: its blocks over two sets of sums, so consecutive
@@ -449,6 +401,51 @@ impl HalfCopy {
                     acc[k] = _mm_add_ps(acc[k], acc2[k]);
                 }
                 finish(j, acc);
+            }
+        }
+    }
+
+    /// Columns `j − G + 1` to `j` of one supernode in the backward sweep
+    /// (column `j − g`'s rows are `j − g + 1` to `j`, then column `j`'s):
+    /// each row of column `j` is read once for all `G`, and each column is
+    /// finished as soon as the nodes after it are.
+    ///
+    /// # Safety
+    /// As [`Self::backward`], with `yp` its `y` and `j − G + 1` to `j` joined.
+    #[inline]
+    #[target_feature(enable = "avx2,fma,f16c")]
+    unsafe fn backward_group<const G: usize>(
+        &self,
+        sym: Structure<'_>,
+        yp: *mut f32,
+        j: usize,
+        finish: &impl Fn(usize, [std::arch::x86_64::__m128; 3]),
+    ) {
+        use std::arch::x86_64::*;
+        let (start, end) = (sym.col_ptr[j], sym.col_ptr[j + 1]);
+        // Column `j − g`'s block in the row of column `j`'s block `t` is
+        // `starts[g] + t`.
+        let starts: [usize; G] = std::array::from_fn(|g| sym.col_ptr[j - g] + g);
+        let mut acc = [[_mm_setzero_ps(); 3]; G];
+        // SAFETY: the caller's guarantees.
+        unsafe {
+            for t in (0..end - start).rev() {
+                let v = _mm_loadu_ps(yp.add(4 * sym.row_idx[start + t]));
+                for (a, &s) in acc.iter_mut().zip(&starts) {
+                    for k in 0..3 {
+                        a[k] = _mm_fmadd_ps(self.col(s + t, k), v, a[k]);
+                    }
+                }
+            }
+            finish(j, acc[0]);
+            for done in 1..G {
+                let v = _mm_loadu_ps(yp.add(4 * (j + 1 - done)));
+                for g in done..G {
+                    for k in 0..3 {
+                        acc[g][k] = _mm_fmadd_ps(self.col(starts[g] - done, k), v, acc[g][k]);
+                    }
+                }
+                finish(j - done, acc[done]);
             }
         }
     }
