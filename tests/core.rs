@@ -76,6 +76,16 @@ fn lens_material() -> TissueMaterial {
     common::bench::lens_material()
 }
 
+/// Drives the nodes `top` of `body` to their rest positions pressed down by
+/// `depth` and turned by `degrees` about z.
+fn press_and_turn(body: &mut DeformableBody, top: &[usize], depth: f64, degrees: f64) {
+    let rot = Rotation3::from_axis_angle(&Vec3::z_axis(), degrees.to_radians());
+    for &i in top {
+        let p = body.mesh().positions()[i];
+        body.drive_node(i, rot * v3(p.x, p.y, p.z - depth)).unwrap();
+    }
+}
+
 /// Squeezes and twists the paper-size lens through large deformation by driving
 /// its two faces, and returns the mean CG iterations and mean factor age.
 fn lens_iterations(kind: PreconditionerKind, steps: usize) -> (f64, f64) {
@@ -101,12 +111,7 @@ fn lens_iterations(kind: PreconditionerKind, steps: usize) -> (f64, f64) {
     for s in 0..steps {
         let t = (s + 1) as f64 / steps as f64;
         // Top face pressed down 40 % of the thickness and turned by 60°.
-        let rot = Rotation3::from_axis_angle(&Vec3::z_axis(), t * 60f64.to_radians());
-        for &i in &top {
-            let p = mesh.positions()[i];
-            body.drive_node(i, rot * v3(p.x, p.y, p.z - t * 1.8e-3))
-                .unwrap();
-        }
+        press_and_turn(&mut body, &top, t * 1.8e-3, t * 60.0);
         body.fix_nodes(&bottom).unwrap();
         let t0 = std::time::Instant::now();
         let r = body.step(h).unwrap();

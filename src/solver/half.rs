@@ -228,6 +228,21 @@ unsafe fn round_blocks(l: &[Mat3], out: &mut [u16]) -> bool {
 
 #[cfg(target_arch = "x86_64")]
 impl HalfCopy {
+    /// Checks that `sym` and `y` fit this copy and each other (what the
+    /// sweeps' unchecked accesses rely on, with `sym`'s own structure); returns
+    /// the number of nodes.
+    fn check(&self, sym: Structure<'_>, y: &[[f32; 4]]) -> usize {
+        let n = sym.perm.len();
+        assert!(
+            y.len() >= n
+                && sym.col_ptr.len() == n + 1
+                && sym.joins_next.len() >= n
+                && self.l.len() >= 9 * sym.row_idx.len() + 4,
+            "half-precision sweep: structure, copy and vector do not fit"
+        );
+        n
+    }
+
     /// Column `k` of block `p` in lanes 0–2; lane 3 is the next entry (the
     /// kernels multiply it by a lane held at zero).
     ///
@@ -255,13 +270,7 @@ impl HalfCopy {
     #[target_feature(enable = "avx2,fma,f16c")]
     unsafe fn forward(&self, sym: Structure<'_>, y: &mut [[f32; 4]]) {
         use std::arch::x86_64::*;
-        let n = sym.perm.len();
-        assert!(
-            y.len() >= n
-                && sym.col_ptr.len() == n + 1
-                && sym.joins_next.len() >= n
-                && self.l.len() >= 9 * sym.row_idx.len() + 4
-        );
+        let n = self.check(sym, y);
         let yp = y.as_mut_ptr().cast::<f32>();
         // Broadcasts of a solved node's entries, lane 3 zero.
         let splat = |v: [f32; 4]| {
@@ -335,13 +344,7 @@ impl HalfCopy {
     #[target_feature(enable = "avx2,fma,f16c")]
     unsafe fn backward(&self, sym: Structure<'_>, y: &mut [[f32; 4]]) {
         use std::arch::x86_64::*;
-        let n = sym.perm.len();
-        assert!(
-            y.len() >= n
-                && sym.col_ptr.len() == n + 1
-                && sym.joins_next.len() >= n
-                && self.l.len() >= 9 * sym.row_idx.len() + 4
-        );
+        let n = self.check(sym, y);
         let yp = y.as_mut_ptr().cast::<f32>();
         let zero = _mm_setzero_ps();
         // `y_j − Σ`, solved with the diagonal block, into `y_j`. Lane 3 of

@@ -212,12 +212,7 @@ fn half_precision_preconditioner_follows_the_previous_solve() {
     let (mut previous, mut half, mut single) = (0, 0, 0);
     for s in 0..steps {
         let t = (s + 1) as f64 / steps as f64;
-        let rot = Rotation3::from_axis_angle(&Vec3::z_axis(), t * 45f64.to_radians());
-        for &i in &top {
-            let p = mesh.positions()[i];
-            body.drive_node(i, rot * v3(p.x, p.y, p.z - t * 1.0e-3))
-                .unwrap();
-        }
+        press_and_turn(&mut body, &top, t * 1.0e-3, t * 45.0);
         let before = body.preconditioner().stats().half_solves;
         let r = body.step(0.02).unwrap();
         assert!(r.cg.converged, "step {s}: {:?}", r.cg);
