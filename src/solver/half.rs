@@ -31,6 +31,7 @@ use crate::math::{Mat3, Vec3};
 /// The structure of `L` the sweeps walk (borrowed from the factor's
 /// symbolic analysis; see `LdltSymbolic`).
 #[derive(Clone, Copy)]
+#[cfg_attr(not(target_arch = "x86_64"), allow(dead_code))]
 pub(crate) struct Structure<'a> {
     /// `perm[new] = old` node.
     pub perm: &'a [usize],
@@ -43,6 +44,7 @@ pub(crate) struct Structure<'a> {
 }
 
 /// The largest finite binary16 value.
+#[cfg(target_arch = "x86_64")]
 const HALF_MAX: f64 = 65504.0;
 
 /// Entries of the scaled right-hand side below this are set to zero: far
