@@ -122,6 +122,9 @@ fn bench_backward(c: &mut Criterion) {
     });
     if f.round_to_half() {
         c.bench_function("lens_round_to_half", |b| b.iter(|| f.round_to_half()));
+        c.bench_function("lens_round_to_single_and_half", |b| {
+            b.iter(|| f.round_to_single_and_half())
+        });
         let mut t32 = vec![[0.0f32; 4]; n];
         c.bench_function("lens_solve_half", |b| {
             b.iter(|| f.solve_half(&y0, &mut x1, &mut t1, &mut t32))

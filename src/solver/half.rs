@@ -94,7 +94,18 @@ impl HalfCopy {
     /// Makes the copy of `l`, `ldiag` and `d`; returns whether it was made
     /// (see the module docs for when it is not). Allocates on the first call
     /// only.
-    pub(crate) fn make(&mut self, l: &[Mat3], ldiag: &[[f64; 3]], d: &[Vec3]) -> bool {
+    ///
+    /// `l32`, the factor's single-precision copy where it has one (nine
+    /// entries per block, as `l`), is rounded instead of `l`: the same
+    /// halves (binary16 of the `f32` value either way), from half the bytes
+    /// and in eight lanes.
+    pub(crate) fn make(
+        &mut self,
+        l: &[Mat3],
+        l32: Option<&[f32]>,
+        ldiag: &[[f64; 3]],
+        d: &[Vec3],
+    ) -> bool {
         self.valid = false;
         if !supported() {
             return false;
@@ -143,7 +154,12 @@ impl HalfCopy {
         #[cfg(target_arch = "x86_64")]
         {
             // SAFETY: `supported` checked the features.
-            ok &= unsafe { round_blocks(l, &mut self.l) };
+            ok &= match l32 {
+                Some(src) if src.len() == 9 * l.len() => unsafe {
+                    round_singles(src, &mut self.l[..src.len()])
+                },
+                _ => unsafe { round_blocks(l, &mut self.l) },
+            };
         }
         self.valid = ok;
         ok
@@ -224,6 +240,47 @@ unsafe fn round_blocks(l: &[Mat3], out: &mut [u16]) -> bool {
             let h = _mm_cvtps_ph::<_MM_FROUND_TO_NEAREST_INT>(_mm_set_ss(buf[8]));
             o[8] = _mm_extract_epi16::<0>(h) as u16;
         }
+    }
+    ok
+}
+
+/// Rounds `src` (`f32`) into `out`, eight at a time; returns whether every
+/// entry fits binary16.
+///
+/// # Safety
+/// The CPU must have AVX2, FMA and F16C; `out` as long as `src`.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma,f16c")]
+unsafe fn round_singles(src: &[f32], out: &mut [u16]) -> bool {
+    use std::arch::x86_64::*;
+    assert_eq!(src.len(), out.len());
+    let limit = _mm256_set1_ps(HALF_MAX as f32);
+    let sign = _mm256_set1_ps(-0.0);
+    // All ones while every magnitude is at most the limit (false for NaN).
+    let mut fits = _mm256_castsi256_ps(_mm256_set1_epi32(-1));
+    let (body, tail) = (src.len() / 8 * 8, src.len() % 8);
+    // SAFETY: eight readable and writable entries at each `i < body`.
+    unsafe {
+        for i in (0..body).step_by(8) {
+            let v = _mm256_loadu_ps(src.as_ptr().add(i));
+            let a = _mm256_andnot_ps(sign, v);
+            fits = _mm256_and_ps(fits, _mm256_cmp_ps::<_CMP_LE_OQ>(a, limit));
+            let h = _mm256_cvtps_ph::<_MM_FROUND_TO_NEAREST_INT>(v);
+            _mm_storeu_si128(out.as_mut_ptr().add(i).cast(), h);
+        }
+    }
+    let mut ok = _mm256_movemask_ps(fits) == 0xff;
+    if tail > 0 {
+        let mut buf = [0.0f32; 8];
+        buf[..tail].copy_from_slice(&src[body..]);
+        ok &= buf.iter().all(|v| f64::from(v.abs()) <= HALF_MAX);
+        let mut h = [0u16; 8];
+        // SAFETY: eight entries each side.
+        unsafe {
+            let v = _mm256_cvtps_ph::<_MM_FROUND_TO_NEAREST_INT>(_mm256_loadu_ps(buf.as_ptr()));
+            _mm_storeu_si128(h.as_mut_ptr().cast(), v);
+        }
+        out[body..].copy_from_slice(&h[..tail]);
     }
     ok
 }

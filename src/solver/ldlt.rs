@@ -798,7 +798,19 @@ impl LdltFactor {
     /// [`Self::solve_half`] solves like [`Self::solve_single`]). Allocates on
     /// the first call only.
     pub fn round_to_half(&mut self) -> bool {
-        self.half.make(&self.l, &self.ldiag, &self.d)
+        self.half.make(&self.l, None, &self.ldiag, &self.d)
+    }
+
+    /// [`Self::round_to_single`], then [`Self::round_to_half`] from the
+    /// single-precision copy where it was made: the same halves (binary16 of
+    /// the `f32` value either way) from half the bytes, in eight lanes. What
+    /// the lagged preconditioners make of each new factor. Returns whether
+    /// each copy was made.
+    pub fn round_to_single_and_half(&mut self) -> (bool, bool) {
+        let single = self.round_to_single();
+        let l32 = single.then(|| &self.l32[..9 * self.l.len()]);
+        let half = self.half.make(&self.l, l32, &self.ldiag, &self.d);
+        (single, half)
     }
 
     /// Whether a half-precision copy is in place (see [`Self::round_to_half`]).
@@ -1800,6 +1812,12 @@ pub(crate) mod tests {
             residual > 8.0 * residual_single,
             "{residual:e} vs {residual_single:e}"
         );
+        // Rounded from the single-precision copy: the same halves.
+        let mut g = f.clone();
+        assert_eq!(g.round_to_single_and_half(), (true, true));
+        let mut xg = b.clone();
+        g.solve_half(&b, &mut xg, &mut tmp, &mut t32);
+        assert_eq!(xg, xh);
         // Symmetric (the backward sweep reads the same rounded blocks as the
         // forward one) and positive.
         let u: Vec<Vec3> = (0..n)
@@ -1918,6 +1936,7 @@ pub(crate) mod tests {
             assert!(g.round_to_half(), "{what}: before");
             edit(&mut g);
             assert!(!g.round_to_half() && !g.has_half(), "{what}");
+            assert!(!g.round_to_single_and_half().1 && !g.has_half(), "{what}");
             if g.round_to_single() {
                 g.solve_half(&b, &mut xh, &mut tmp, &mut t32);
                 g.solve_single(&b, &mut xs, &mut tmp);

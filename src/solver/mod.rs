@@ -51,7 +51,8 @@
 //! The lagged kinds (`Periodic`, `Async`, `AsyncLagged`) keep two rounded
 //! copies of each factor, made with it (by the worker for the async kinds):
 //! `L` in `f32` ([`LdltFactor::round_to_single`]) and `L` in IEEE binary16
-//! with the diagonal blocks and `D⁻¹` in `f32` ([`LdltFactor::round_to_half`]).
+//! with the diagonal blocks and `D⁻¹` in `f32` ([`LdltFactor::round_to_half`];
+//! both at once, the second from the first: [`LdltFactor::round_to_single_and_half`]).
 //! A triangular solve reads all of `L`, which for the paper-size lens (66 000
 //! 3×3 blocks) is 4.7 MB in `f64`, 2.4 MB in `f32` (still a little more than a
 //! core's L2 cache on the development machine) and 1.2 MB in binary16.
@@ -559,8 +560,7 @@ impl PreconditionerState {
             // The lagged kinds solve with `L` in half precision (see the
             // module docs; the single-precision copy is the contact
             // correction's); `Exact` stays the double-precision reference.
-            st.factor.round_to_single();
-            st.factor.round_to_half();
+            st.factor.round_to_single_and_half();
         }
         let dt = t0.elapsed().as_secs_f64();
         self.stats.factor_seconds = dt;

@@ -142,8 +142,7 @@ impl AsyncFactorizer {
                             // The preconditioner solves with `L` in half
                             // precision, the contact correction in single
                             // (see the module docs of `super`).
-                            job.factor.round_to_single();
-                            job.factor.round_to_half();
+                            job.factor.round_to_single_and_half();
                         }
                         // The compliance's node columns of the new factor, here
                         // rather than on the stepping thread.
