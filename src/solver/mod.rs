@@ -61,9 +61,10 @@
 //! ([`LdltFactor::solve_half`]) once the body's previous solve took
 //! [`HALF_FROM_ITERATIONS`] iterations or more, with the `f32` copy before
 //! ([`PreconditionerStats::half_solves`] counts the former): one solve of the
-//! lens 130 µs against 206 µs with the `f32` copy in `f64` arithmetic
-//! (`cargo bench --bench step -- lens_solve`). The rounding (a relative 4.9·10⁻⁴ per entry of `L`) leaves
-//! `L̃ D L̃ᵀ` symmetric positive definite and within about 10⁻³ of `L D Lᵀ`;
+//! lens 118–121 µs against 204–206 µs with the `f32` copy in `f64`
+//! arithmetic (`cargo bench --bench step -- lens_solve`). The rounding (a
+//! relative 4.9·10⁻⁴ per entry of `L`) leaves `L̃ D L̃ᵀ` symmetric positive
+//! definite and within about 10⁻³ of `L D Lᵀ`;
 //! CG still stops on its own residual tolerance, so only the iteration count
 //! moves. Each solve of a `lag2` cataract run done both ways: a solve that
 //! takes one iteration with the `f32` copy takes two (the lens) or three (the
