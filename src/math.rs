@@ -179,6 +179,19 @@ pub fn polar_rotation_fast(f: &Mat3) -> Mat3 {
         .unwrap_or_else(|| polar_rotation(f))
 }
 
+/// `Σ aᵢ · bᵢ` over 3-vectors.
+#[inline]
+pub(crate) fn dot(a: &[Vec3], b: &[Vec3]) -> f64 {
+    a.iter().zip(b).map(|(x, y)| x.dot(y)).sum()
+}
+
+/// The largest magnitude of any entry of `v` (0 for an empty slice; NaN is
+/// passed over, an infinite entry gives ∞).
+#[inline]
+pub(crate) fn max_abs(v: &[Vec3]) -> f64 {
+    v.iter().fold(0.0, |m, x| m.max(x.amax()))
+}
+
 /// Whether `det F` is safely positive for the Newton iteration: finite and
 /// above `10⁻⁶ ‖F‖³` (`scale2 = ‖F‖²`, Frobenius).
 #[inline]

@@ -1,7 +1,7 @@
 //! Preconditioned conjugate gradient on 3-vector blocks.
 
 use crate::fem::assembly::BlockCsr;
-use crate::math::Vec3;
+use crate::math::{Vec3, dot};
 use crate::solver::Preconditioner;
 
 /// Stopping rule of the conjugate gradient.
@@ -58,10 +58,6 @@ impl CgScratch {
             q: z,
         }
     }
-}
-
-fn dot(a: &[Vec3], b: &[Vec3]) -> f64 {
-    a.iter().zip(b).map(|(x, y)| x.dot(y)).sum()
 }
 
 /// Solves `A x = b` by preconditioned CG starting from `x`.

@@ -26,7 +26,7 @@
 //! [`LdltFactor::solve_half`](crate::solver::ldlt::LdltFactor::solve_half) solves with the
 //! single-precision copy.
 
-use crate::math::{Mat3, Vec3};
+use crate::math::{Mat3, Vec3, max_abs};
 
 /// The structure of `L` the sweeps walk (borrowed from the factor's
 /// symbolic analysis; see `LdltSymbolic`).
@@ -174,7 +174,7 @@ impl HalfCopy {
             b.len() >= n && x.len() >= n && y.len() >= n,
             "solve: one entry per node"
         );
-        let s = b[..n].iter().fold(0.0f64, |m, v| m.max(v.amax()));
+        let s = max_abs(&b[..n]);
         if s == 0.0 {
             x[..n].fill(Vec3::zeros());
             return;

@@ -1403,6 +1403,7 @@ fn sub_products_avx512(l: &[Mat3], rows: &[usize], z: &Mat3, work: &mut [Mat3]) 
 #[cfg(test)]
 pub(crate) mod tests {
     use super::*;
+    use crate::math::{dot, max_abs};
 
     /// Arbitrary but reproducible values.
     fn val(i: usize) -> f64 {
@@ -1765,10 +1766,6 @@ pub(crate) mod tests {
         u.iter().map(|x| x.max()).fold(0.0, f64::max)
     }
 
-    fn inf_norm(x: &[Vec3]) -> f64 {
-        x.iter().map(|v| v.amax()).fold(0.0, f64::max)
-    }
-
     /// The half-precision solve of a real factor (an SPD matrix's, several
     /// supernode shapes): its residual against the matrix is within what
     /// rounding `L` to binary16 and the arithmetic to `f32` can leave (the
@@ -1798,16 +1795,22 @@ pub(crate) mod tests {
         let mut t32 = vec![[0.0f32; 4]; n];
         f.solve_half(&b, &mut xh, &mut tmp, &mut t32);
         f.solve_single(&b, &mut xs, &mut tmp);
-        let mut ax = b.clone();
-        a.mul_vec(&xh, &mut ax);
-        let residual = inf_norm(&ax.iter().zip(&b).map(|(p, q)| p - q).collect::<Vec<_>>());
+        // `max |A x − b|`.
+        let residual_of = |x: &[Vec3]| {
+            let mut ax = vec![Vec3::zeros(); n];
+            a.mul_vec(x, &mut ax);
+            ax.iter()
+                .zip(&b)
+                .map(|(p, q)| (p - q).amax())
+                .fold(0.0, f64::max)
+        };
+        let residual = residual_of(&xh);
         let bound = (2.0 * 2f64.powi(-11) + 4.0 * n as f64 * 2f64.powi(-24))
             * abs_product_norm(&f)
-            * inf_norm(&xh);
+            * max_abs(&xh);
         assert!(residual <= bound, "residual {residual:e} above {bound:e}");
         // Binary16, not f32: the single-precision solve is 2¹³ times closer.
-        a.mul_vec(&xs, &mut ax);
-        let residual_single = inf_norm(&ax.iter().zip(&b).map(|(p, q)| p - q).collect::<Vec<_>>());
+        let residual_single = residual_of(&xs);
         assert!(
             residual > 8.0 * residual_single,
             "{residual:e} vs {residual_single:e}"
@@ -1825,7 +1828,6 @@ pub(crate) mod tests {
             .collect();
         let mut xu = b.clone();
         f.solve_half(&u, &mut xu, &mut tmp, &mut t32);
-        let dot = |p: &[Vec3], q: &[Vec3]| p.iter().zip(q).map(|(x, y)| x.dot(y)).sum::<f64>();
         let (ub, bu) = (dot(&u, &xh), dot(&b, &xu));
         let norm = |p: &[Vec3]| dot(p, p).sqrt();
         assert!(
@@ -1887,7 +1889,7 @@ pub(crate) mod tests {
         let mut t32 = vec![[0.0f32; 4]; n];
         f.solve(&b, &mut x, &mut tmp);
         f.solve_half(&b, &mut xh, &mut tmp, &mut t32);
-        let scale = inf_norm(&x).max(inf_norm(&b));
+        let scale = max_abs(&x).max(max_abs(&b));
         let worst = x
             .iter()
             .zip(&xh)
