@@ -11,6 +11,8 @@
 //! the eye, `CataractParams::push_only`), `--coarse`
 //! (light meshes), `--preconditioner none|jacobi|exact|periodicN|async|lagN`
 //! (`lagN`: `AsyncLagged`, the factor arrives exactly N steps later),
+//! `--eye-preconditioner KIND` (headless: the eye's, where it differs from the
+//! lens's), `--trace FILE` (headless: one CSV line per step),
 //! `--compliance factorized|exact|diagonal|rest|dense`, `--reuse N` (steps a
 //! factor serves the compliance, `ContactSettings::factor_reuse`), `--passes N`
 //! (contact passes per step), `--no-predict` (detect at the free motion, not
@@ -66,7 +68,7 @@ use bevy_soft_tissue::scenes::cataract::CataractParams;
 mod common;
 use bevy_soft_tissue::solver::PreconditionerKind;
 use clap::Parser;
-use common::headless::{HeadlessSummary, Recording, run_headless_recording};
+use common::headless::{HeadlessOptions, HeadlessSummary, Recording, run_headless_with};
 
 /// The cataract (MSICS) nucleus-extraction scene: in a window with the
 /// `viewer` feature and a display, otherwise headless with per-phase timings.
@@ -91,6 +93,17 @@ struct Args {
     /// exactly N steps after it was requested).
     #[arg(long, default_value = "async", value_parser = common::args::preconditioner)]
     preconditioner: PreconditionerKind,
+    /// The eye's preconditioner, where it should differ from the lens's
+    /// (`--preconditioner`): the same words (headless only). Two `lagN`
+    /// with different lags give a deterministic trajectory in which the
+    /// bodies' factors arrive at different ages, as with `async`.
+    #[arg(long, value_parser = common::args::preconditioner)]
+    eye_preconditioner: Option<PreconditionerKind>,
+    /// Headless: write one CSV line per step to this file (contacts, passes,
+    /// factor ages, the lens's centre and velocity, the vectis's position;
+    /// with `--repeats`, the last run's).
+    #[arg(long)]
+    trace: Option<std::path::PathBuf>,
     /// factorized, exact, diagonal, rest or dense.
     #[arg(long, default_value = "factorized", value_parser = compliance)]
     compliance: ComplianceMode,
@@ -182,14 +195,26 @@ fn body_settings(args: &Args) -> BodySettings {
 
 fn headless(args: &Args, params: &CataractParams, config: SoftTissueConfig) -> ExitCode {
     println!(
-        "cataract scene, headless: {} steps of {:.4} s, preconditioner {:?}, compliance {:?}, GPU {:?}",
-        args.steps, config.timestep, args.preconditioner, args.compliance, config.gpu
+        "cataract scene, headless: {} steps of {:.4} s, preconditioner {:?}{}, compliance {:?}, GPU {:?}",
+        args.steps,
+        config.timestep,
+        args.preconditioner,
+        args.eye_preconditioner
+            .map(|k| format!(" (the eye's {k:?})"))
+            .unwrap_or_default(),
+        args.compliance,
+        config.gpu
     );
     let body = body_settings(args);
-    let recording = args.record.as_ref().map(|dir| Recording {
-        dir: dir.clone(),
-        min_contacts: args.record_min,
-    });
+    let options = HeadlessOptions {
+        recording: args.record.as_ref().map(|dir| Recording {
+            dir: dir.clone(),
+            min_contacts: args.record_min,
+        }),
+        in_fixed_post_update: args.in_fixed_post_update,
+        eye_preconditioner: args.eye_preconditioner,
+        trace: args.trace.clone(),
+    };
     let runs = args.repeats.max(1);
     let mut done = Vec::new();
     let mut failed = false;
@@ -197,16 +222,9 @@ fn headless(args: &Args, params: &CataractParams, config: SoftTissueConfig) -> E
         if runs > 1 {
             println!("run {} of {runs}", run + 1);
         }
-        match run_headless_recording(
-            params,
-            config.clone(),
-            body,
-            args.steps,
-            recording.as_ref(),
-            args.in_fixed_post_update,
-        ) {
+        match run_headless_with(params, config.clone(), body, args.steps, &options) {
             Ok(s) => {
-                print_summary(&s, params, recording.as_ref());
+                print_summary(&s, params, options.recording.as_ref());
                 if s.max_penetration > s.tolerance {
                     eprintln!("penetration beyond tolerance");
                     failed = true;

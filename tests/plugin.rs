@@ -417,6 +417,61 @@ fn cataract_scene_runs_headless() {
     );
 }
 
+/// The headless harness's extras: the eye's own preconditioner (a
+/// `PreconditionerOverride` on its entity) and the per-step trace. The lens
+/// refreshes every 4 steps and the eye every step, and the trace shows each
+/// body's factor age, one line per step, ending where the summary's lens does.
+#[test]
+fn headless_trace_and_the_eyes_own_preconditioner() {
+    use bevy_soft_tissue::solver::PreconditionerKind;
+    use common::headless::{HeadlessOptions, TRACE_HEADER, run_headless_with};
+    let params = bevy_soft_tissue::scenes::cataract::CataractParams::coarse().push_only();
+    let config = SoftTissueConfig {
+        timestep: 1.0 / 60.0,
+        ..Default::default()
+    };
+    let body = bevy_soft_tissue::body::BodySettings {
+        preconditioner: PreconditionerKind::Periodic { every: 4 },
+        ..Default::default()
+    };
+    let path = std::env::temp_dir().join(format!("cataract-trace-{}.csv", std::process::id()));
+    let options = HeadlessOptions {
+        eye_preconditioner: Some(PreconditionerKind::Periodic { every: 1 }),
+        trace: Some(path.clone()),
+        ..Default::default()
+    };
+    let steps = 40;
+    let s = run_headless_with(&params, config, body, steps, &options).unwrap();
+    let text = std::fs::read_to_string(&path).unwrap();
+    let _ = std::fs::remove_file(&path);
+    let mut lines = text.lines();
+    assert_eq!(lines.next(), Some(TRACE_HEADER));
+    let columns = TRACE_HEADER.split(',').count();
+    let rows: Vec<Vec<f64>> = lines
+        .map(|l| {
+            let row: Vec<f64> = l.split(',').map(|v| v.parse().unwrap()).collect();
+            assert_eq!(row.len(), columns, "{l}");
+            assert!(row.iter().all(|v| v.is_finite()), "{l}");
+            row
+        })
+        .collect();
+    assert_eq!(rows.len(), steps);
+    assert!(rows.windows(2).all(|w| w[1][0] == w[0][0] + 1.0));
+    let (lens_ages, eye_ages): (Vec<f64>, Vec<f64>) = rows.iter().map(|r| (r[5], r[6])).unzip();
+    assert!(eye_ages.iter().all(|&a| a == 0.0), "eye {eye_ages:?}");
+    assert!(lens_ages.iter().all(|&a| a < 4.0), "lens {lens_ages:?}");
+    assert!(lens_ages.contains(&3.0), "lens {lens_ages:?}");
+    let last = rows.last().unwrap();
+    let end = s.lens_center.1 * 1e3;
+    assert!(
+        (last[8] - end.x).abs() < 1e-4
+            && (last[9] - end.y).abs() < 1e-4
+            && (last[10] - end.z).abs() < 1e-4,
+        "trace ends at {:?}, the summary at {end:?}",
+        &last[8..11]
+    );
+}
+
 #[test]
 fn cataract_scene_delivers_the_lens_through_the_incision() {
     let (params, s) = coarse_cataract(true, 1080);

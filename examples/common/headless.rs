@@ -1,6 +1,7 @@
 //! The cataract scene run without a window and measured: the harness of
 //! `examples/cataract.rs --headless` and of the scene test (not library API).
 
+use std::io::Write;
 use std::time::Duration;
 
 use bevy::prelude::*;
@@ -9,10 +10,12 @@ use bevy_soft_tissue::body::BodySettings;
 use bevy_soft_tissue::contact::{ContactSolver, PassKind};
 use bevy_soft_tissue::error::{Result, SoftTissueError};
 use bevy_soft_tissue::plugin::{
-    GpuMode, SoftBody, SoftTissueConfig, SoftTissueContacts, SoftTissueDiagnostics, Tool,
+    GpuMode, PreconditionerOverride, SoftBody, SoftTissueConfig, SoftTissueContacts,
+    SoftTissueDiagnostics, Tool,
 };
 use bevy_soft_tissue::scenes::cataract::{self, CataractParams};
-use bevy_soft_tissue::scenes::{CataractScenePlugin, Lens};
+use bevy_soft_tissue::scenes::{CataractScenePlugin, Eye, Lens};
+use bevy_soft_tissue::solver::PreconditionerKind;
 
 /// The columns of [`HeadlessSummary::median_ms`] and its kin.
 pub const PHASES: [&str; 10] = [
@@ -179,6 +182,31 @@ pub struct Recording {
     pub min_contacts: usize,
 }
 
+/// What a headless run does beyond stepping and measuring.
+#[derive(Debug, Clone, Default)]
+pub struct HeadlessOptions {
+    /// Write the first-pass contact problems (see [`Recording`]).
+    pub recording: Option<Recording>,
+    /// The pipeline's sets straight in `FixedPostUpdate`
+    /// (`SoftTissuePlugins::new(FixedPostUpdate)`, Bevy's multi-threaded
+    /// executor) instead of their own schedule.
+    pub in_fixed_post_update: bool,
+    /// The eye's preconditioner, where it differs from the lens's: a
+    /// [`PreconditionerOverride`] on the eye's entity.
+    pub eye_preconditioner: Option<PreconditionerKind>,
+    /// Write one line per step to this CSV file (see [`TRACE_HEADER`]).
+    pub trace: Option<std::path::PathBuf>,
+}
+
+/// The columns of [`HeadlessOptions::trace`]: the step; its contacts, contact
+/// passes and first-pass LCP sweeps; the consistency refreshes so far; the
+/// lens's and the eye's factor ages (steps); the work the step's corrections
+/// added beyond the contact forces' (J, `ContactReport::misaccounted_work`);
+/// the lens's centre (mm) and mean velocity (mm/s); the vectis's position (mm).
+pub const TRACE_HEADER: &str = "step,contacts,passes,lcp_sweeps,consistency_refactors,\
+lens_factor_age,eye_factor_age,misaccounted_work_j,lens_x_mm,lens_y_mm,lens_z_mm,\
+lens_vx_mm_s,lens_vy_mm_s,lens_vz_mm_s,vectis_x_mm,vectis_y_mm,vectis_z_mm";
+
 /// Runs the cataract scene without a window for `steps` fixed steps and
 /// measures it. Fails on NaN or on errors reported by the pipeline; the caller
 /// compares [`HeadlessSummary::max_penetration`] with its tolerance.
@@ -188,21 +216,19 @@ pub fn run_headless(
     body: BodySettings,
     steps: usize,
 ) -> Result<HeadlessSummary> {
-    run_headless_recording(params, config, body, steps, None, false)
+    run_headless_with(params, config, body, steps, &HeadlessOptions::default())
 }
 
-/// [`run_headless`], writing the first-pass contact problems as `recording`
-/// says; `in_fixed_post_update`: the pipeline's sets straight in
-/// `FixedPostUpdate` (`SoftTissuePlugins::new(FixedPostUpdate)`, Bevy's
-/// multi-threaded executor) instead of their own schedule.
-pub fn run_headless_recording(
+/// [`run_headless`] with the extras of `options`.
+pub fn run_headless_with(
     params: &CataractParams,
     config: SoftTissueConfig,
     body: BodySettings,
     steps: usize,
-    recording: Option<&Recording>,
-    in_fixed_post_update: bool,
+    options: &HeadlessOptions,
 ) -> Result<HeadlessSummary> {
+    let (recording, in_fixed_post_update) =
+        (options.recording.as_ref(), options.in_fixed_post_update);
     let h = config.timestep;
     let mut app = App::new();
     // The GPU path needs a render device: a windowless render app (which
@@ -236,6 +262,29 @@ pub fn run_headless_recording(
         app.cleanup();
     }
     app.update();
+    if let Some(kind) = options.eye_preconditioner {
+        let mut eyes = app.world_mut().query_filtered::<Entity, With<Eye>>();
+        let eye = eyes
+            .iter(app.world())
+            .next()
+            .ok_or(SoftTissueError::EmptyMesh("cataract scene did not spawn"))?;
+        app.world_mut()
+            .entity_mut(eye)
+            .insert(PreconditionerOverride(kind));
+    }
+    let io = |path: &std::path::Path, e: std::io::Error| SoftTissueError::Io {
+        path: path.display().to_string(),
+        reason: e.to_string(),
+    };
+    let mut trace = match &options.trace {
+        Some(path) => {
+            let mut f =
+                std::io::BufWriter::new(std::fs::File::create(path).map_err(|e| io(path, e))?);
+            writeln!(f, "{TRACE_HEADER}").map_err(|e| io(path, e))?;
+            Some((path, f))
+        }
+        None => None,
+    };
     if let Some(r) = recording {
         std::fs::create_dir_all(&r.dir).map_err(|e| SoftTissueError::Io {
             path: r.dir.display().to_string(),
@@ -250,6 +299,7 @@ pub fn run_headless_recording(
     let mut lcp_sweeps = (0usize, 0usize);
     // Queries made once, read after every step.
     let mut lens_q = app.world_mut().query_filtered::<&SoftBody, With<Lens>>();
+    let mut eye_q = app.world_mut().query_filtered::<&SoftBody, With<Eye>>();
     let mut tool_q = app.world_mut().query::<&Tool>();
     let mut body_q = app.world_mut().query::<&SoftBody>();
     let centre = |b: &SoftBody| {
@@ -381,6 +431,46 @@ pub fn run_headless_recording(
             let v = b.velocities();
             let mean = v.iter().sum::<bevy_soft_tissue::math::Vec3>() / v.len().max(1) as f64;
             max_lens_speed = max_lens_speed.max(mean.norm());
+            if let Some((path, f)) = trace.as_mut() {
+                let c = centre(b) * 1e3;
+                let v = mean * 1e3;
+                let t = tool_q
+                    .iter(world)
+                    .next()
+                    .map(|t| t.0.pose().translation.vector * 1e3)
+                    .unwrap_or_default();
+                let eye_age = eye_q
+                    .iter(world)
+                    .next()
+                    .map_or(0, |e| e.report().preconditioner.factor_age);
+                let misaccounted = world
+                    .resource::<SoftTissueContacts>()
+                    .solver
+                    .report()
+                    .misaccounted_work;
+                writeln!(
+                    f,
+                    "{},{},{},{},{},{},{},{:e},{:.5},{:.5},{:.5},{:.4},{:.4},{:.4},{:.5},{:.5},{:.5}",
+                    d.steps,
+                    d.contacts,
+                    d.contact_passes,
+                    d.lcp_first_iterations,
+                    d.consistency_refactors,
+                    b.report().preconditioner.factor_age,
+                    eye_age,
+                    misaccounted,
+                    c.x,
+                    c.y,
+                    c.z,
+                    v.x,
+                    v.y,
+                    v.z,
+                    t.x,
+                    t.y,
+                    t.z
+                )
+                .map_err(|e| io(path, e))?;
+            }
         }
         // Penetration left at the end of the step: into the vectis and between the bodies.
         let tools: Vec<&bevy_soft_tissue::contact::RigidTool> =
@@ -403,6 +493,9 @@ pub fn run_headless_recording(
                 max_tissue = max_tissue.max(-c.gap);
             }
         }
+    }
+    if let Some((path, mut f)) = trace {
+        f.flush().map_err(|e| io(path, e))?;
     }
     let end = lens_q.iter(app.world()).next().map(centre).unwrap_or(start);
     let count = |b: &SoftBody| (b.inverted_elements(), b.elements().len());
