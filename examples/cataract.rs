@@ -100,8 +100,8 @@ struct Args {
     #[arg(long, value_parser = common::args::preconditioner)]
     eye_preconditioner: Option<PreconditionerKind>,
     /// Headless: write one CSV line per step to this file (contacts, passes,
-    /// factor ages, the lens's centre and velocity, the vectis's position;
-    /// with `--repeats`, the last run's).
+    /// factor ages, the lens's centre and velocity, the vectis's position,
+    /// the lens's inverted elements; with `--repeats`, the last run's).
     #[arg(long)]
     trace: Option<std::path::PathBuf>,
     /// factorized, exact, diagonal, rest or dense.

@@ -202,10 +202,11 @@ pub struct HeadlessOptions {
 /// passes and first-pass LCP sweeps; the consistency refreshes so far; the
 /// lens's and the eye's factor ages (steps); the work the step's corrections
 /// added beyond the contact forces' (J, `ContactReport::misaccounted_work`);
-/// the lens's centre (mm) and mean velocity (mm/s); the vectis's position (mm).
+/// the lens's centre (mm) and mean velocity (mm/s); the vectis's position
+/// (mm); the lens's elements flat or inverted (`DeformableBody::inverted_elements`).
 pub const TRACE_HEADER: &str = "step,contacts,passes,lcp_sweeps,consistency_refactors,\
 lens_factor_age,eye_factor_age,misaccounted_work_j,lens_x_mm,lens_y_mm,lens_z_mm,\
-lens_vx_mm_s,lens_vy_mm_s,lens_vz_mm_s,vectis_x_mm,vectis_y_mm,vectis_z_mm";
+lens_vx_mm_s,lens_vy_mm_s,lens_vz_mm_s,vectis_x_mm,vectis_y_mm,vectis_z_mm,lens_inverted";
 
 /// Runs the cataract scene without a window for `steps` fixed steps and
 /// measures it. Fails on NaN or on errors reported by the pipeline; the caller
@@ -450,7 +451,7 @@ pub fn run_headless_with(
                     .misaccounted_work;
                 writeln!(
                     f,
-                    "{},{},{},{},{},{},{},{:e},{:.5},{:.5},{:.5},{:.4},{:.4},{:.4},{:.5},{:.5},{:.5}",
+                    "{},{},{},{},{},{},{},{:e},{:.5},{:.5},{:.5},{:.4},{:.4},{:.4},{:.5},{:.5},{:.5},{}",
                     d.steps,
                     d.contacts,
                     d.contact_passes,
@@ -467,7 +468,8 @@ pub fn run_headless_with(
                     v.z,
                     t.x,
                     t.y,
-                    t.z
+                    t.z,
+                    b.inverted_elements()
                 )
                 .map_err(|e| io(path, e))?;
             }
