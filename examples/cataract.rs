@@ -513,6 +513,24 @@ fn main() -> ExitCode {
         }
         return headless(&args, &params, config);
     }
+    let headless_only: Vec<&str> = [
+        ("--eye-preconditioner", args.eye_preconditioner.is_some()),
+        ("--trace", args.trace.is_some()),
+    ]
+    .into_iter()
+    .filter_map(|(name, given)| given.then_some(name))
+    .collect();
+    if !headless_only.is_empty() {
+        let (verb, pronoun) = if headless_only.len() > 1 {
+            ("apply", "them")
+        } else {
+            ("applies", "it")
+        };
+        println!(
+            "{} only {verb} headless (--headless); the window runs without {pronoun}",
+            headless_only.join(" and ")
+        );
+    }
     #[cfg(feature = "viewer")]
     viewer::run(params, config, body_settings(&args), args.haptics);
     ExitCode::SUCCESS
