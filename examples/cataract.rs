@@ -455,6 +455,12 @@ fn print_summary(s: &HeadlessSummary, params: &CataractParams, recording: Option
         "max penetration at step end {:.2e} m, lens-sclera {:.2e} m (tolerance {:.2e} m)",
         s.max_penetration, s.max_tissue_penetration, s.tolerance
     );
+    let (in_faces, at_end, triangles) = s.vectis_in_faces;
+    println!(
+        "the vectis inside the lens's surface triangles between their vertices (not checked by the \
+         contacts): at most {in_faces:.2e} m at a step's end; at the end {at_end:.2e} m, {triangles} \
+         triangles deeper than the tolerance"
+    );
     let [(lens, lens_all), (all, all_all)] = s.inverted_at_end;
     println!(
         "elements flat or inverted at the end: lens {lens} of {lens_all}, the eye {} of {}",

@@ -472,6 +472,30 @@ fn headless_trace_and_the_eyes_own_preconditioner() {
     );
 }
 
+/// The harness's test of a tool between a surface's vertices: a sphere that
+/// dips 50 µm into a triangle's middle while all three corners stay outside
+/// it is found at that depth; raised clear of the plane, nothing is.
+#[test]
+fn a_tool_between_a_triangles_vertices_is_found() {
+    use bevy_soft_tissue::contact::RigidTool;
+    use common::headless::tool_in_faces;
+    let x = [v3(0.0, 0.0, 0.0), v3(1e-3, 0.0, 0.0), v3(0.0, 1e-3, 0.0)];
+    let centroid = (x[0] + x[1] + x[2]) / 3.0;
+    let (r, tolerance) = (0.2e-3, 1e-6);
+    for (height, depth, count) in [(0.15e-3, 0.05e-3, 1), (0.25e-3, 0.0, 0)] {
+        let pose = nalgebra::Isometry3::translation(centroid.x, centroid.y, height);
+        let tool = RigidTool::new(ToolShape::Sphere { radius: r }, pose).unwrap();
+        // The corners are outside the sphere: a vertex test finds nothing.
+        assert!(x.iter().all(|p| tool.proximity(p, 0.0).is_none()));
+        let (found, n) = tool_in_faces(&tool, &[[0, 1, 2]], &x, tolerance);
+        assert!(
+            (found - depth).abs() < 1e-9,
+            "height {height}: {found} m, expected {depth}"
+        );
+        assert_eq!(n, count, "height {height}");
+    }
+}
+
 #[test]
 fn cataract_scene_delivers_the_lens_through_the_incision() {
     let (params, s) = coarse_cataract(true, 1080);

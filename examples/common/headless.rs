@@ -55,6 +55,12 @@ pub struct HeadlessSummary {
     pub max_penetration: f64,
     /// The part of [`Self::max_penetration`] between the two bodies (lens–sclera), metres.
     pub max_tissue_penetration: f64,
+    /// How deep the vectis reaches inside the lens's surface triangles between
+    /// their vertices, metres: the deepest of [`FACE_POINTS`] on each triangle
+    /// near the vectis, at the end of every step, and at the end of the run
+    /// with the number of triangles deeper than [`Self::tolerance`]. The
+    /// contacts (and [`Self::max_penetration`]) test the vertices only.
+    pub vectis_in_faces: (f64, f64, usize),
     /// Penetration tolerance used (1 % of the smallest lens edge), metres.
     pub tolerance: f64,
     /// Lens centre at the start and at the end.
@@ -182,6 +188,51 @@ pub struct Recording {
     pub min_contacts: usize,
 }
 
+/// Barycentric points (weights of the second and third corner) on each lens
+/// surface triangle that [`HeadlessSummary::vectis_in_faces`] tests: the
+/// centroid, the three edge midpoints and three points between them.
+pub const FACE_POINTS: [(f64, f64); 7] = [
+    (1.0 / 3.0, 1.0 / 3.0),
+    (0.5, 0.5),
+    (0.5, 0.0),
+    (0.0, 0.5),
+    (0.25, 0.25),
+    (0.5, 0.25),
+    (0.25, 0.5),
+];
+
+/// The deepest of [`FACE_POINTS`] inside `tool` over the surface triangles
+/// `triangles` of positions `x` whose bounds meet the tool's (0 where none is
+/// inside), and how many triangles reach deeper than `tolerance`.
+pub fn tool_in_faces(
+    tool: &bevy_soft_tissue::contact::RigidTool,
+    triangles: &[[usize; 3]],
+    x: &[bevy_soft_tissue::math::Vec3],
+    tolerance: f64,
+) -> (f64, usize) {
+    let (lo, hi) = tool.aabb(0.0);
+    // A point inside the tool is nearer its surface than the box's diagonal.
+    let reach = (hi - lo).norm();
+    let (mut deepest, mut count) = (0.0f64, 0);
+    for t in triangles {
+        let p = t.map(|i| x[i]);
+        let (tlo, thi) = (p[0].inf(&p[1]).inf(&p[2]), p[0].sup(&p[1]).sup(&p[2]));
+        if (0..3).any(|k| thi[k] < lo[k] || tlo[k] > hi[k]) {
+            continue;
+        }
+        let mut tri = 0.0f64;
+        for (a, b) in FACE_POINTS {
+            let q = p[0] + (p[1] - p[0]) * a + (p[2] - p[0]) * b;
+            if let Some(pr) = tool.proximity(&q, reach) {
+                tri = tri.min(pr.distance);
+            }
+        }
+        deepest = deepest.min(tri);
+        count += usize::from(-tri > tolerance);
+    }
+    (-deepest, count)
+}
+
 /// What a headless run does beyond stepping and measuring.
 #[derive(Debug, Clone, Default)]
 pub struct HeadlessOptions {
@@ -203,10 +254,13 @@ pub struct HeadlessOptions {
 /// lens's and the eye's factor ages (steps); the work the step's corrections
 /// added beyond the contact forces' (J, `ContactReport::misaccounted_work`);
 /// the lens's centre (mm) and mean velocity (mm/s); the vectis's position
-/// (mm); the lens's elements flat or inverted (`DeformableBody::inverted_elements`).
+/// (mm); the lens's elements flat or inverted (`DeformableBody::inverted_elements`);
+/// how deep the vectis reaches inside the lens's surface triangles between their
+/// vertices (m, see [`HeadlessSummary::vectis_in_faces`]).
 pub const TRACE_HEADER: &str = "step,contacts,passes,lcp_sweeps,consistency_refactors,\
 lens_factor_age,eye_factor_age,misaccounted_work_j,lens_x_mm,lens_y_mm,lens_z_mm,\
-lens_vx_mm_s,lens_vy_mm_s,lens_vz_mm_s,vectis_x_mm,vectis_y_mm,vectis_z_mm,lens_inverted";
+lens_vx_mm_s,lens_vy_mm_s,lens_vz_mm_s,vectis_x_mm,vectis_y_mm,vectis_z_mm,lens_inverted,\
+vectis_in_faces_m";
 
 /// Runs the cataract scene without a window for `steps` fixed steps and
 /// measures it. Fails on NaN or on errors reported by the pipeline; the caller
@@ -319,6 +373,20 @@ pub fn run_headless_with(
     // A detection pass of its own over each step's final positions: what the
     // pipeline left penetrating, tools and bodies alike.
     let mut checker = ContactSolver::new(cataract::contact_settings())?;
+    // The lens's surface triangles in its node indices, for the test of the
+    // vectis between their vertices.
+    let lens_triangles: Vec<[usize; 3]> = lens_q
+        .iter(app.world())
+        .next()
+        .map(|b| {
+            let s = b.mesh().surface();
+            s.triangles
+                .iter()
+                .map(|t| t.map(|i| s.vertices[i]))
+                .collect()
+        })
+        .unwrap_or_default();
+    let mut vectis_in_faces = (0.0f64, 0.0f64, 0usize);
     let mut jam = (Vec::new(), Vec::new());
     let mut max_tissue: f64 = 0.0;
     let mut phases: [Vec<f64>; 10] = Default::default();
@@ -432,6 +500,10 @@ pub fn run_headless_with(
             let v = b.velocities();
             let mean = v.iter().sum::<bevy_soft_tissue::math::Vec3>() / v.len().max(1) as f64;
             max_lens_speed = max_lens_speed.max(mean.norm());
+            let in_faces = tool_q.iter(world).next().map_or(0.0, |t| {
+                tool_in_faces(&t.0, &lens_triangles, b.positions(), tolerance).0
+            });
+            vectis_in_faces.0 = vectis_in_faces.0.max(in_faces);
             if let Some((path, f)) = trace.as_mut() {
                 let c = centre(b) * 1e3;
                 let v = mean * 1e3;
@@ -451,7 +523,7 @@ pub fn run_headless_with(
                     .misaccounted_work;
                 writeln!(
                     f,
-                    "{},{},{},{},{},{},{},{:e},{:.5},{:.5},{:.5},{:.4},{:.4},{:.4},{:.5},{:.5},{:.5},{}",
+                    "{},{},{},{},{},{},{},{:e},{:.5},{:.5},{:.5},{:.4},{:.4},{:.4},{:.5},{:.5},{:.5},{},{:e}",
                     d.steps,
                     d.contacts,
                     d.contact_passes,
@@ -469,7 +541,8 @@ pub fn run_headless_with(
                     t.x,
                     t.y,
                     t.z,
-                    b.inverted_elements()
+                    b.inverted_elements(),
+                    in_faces
                 )
                 .map_err(|e| io(path, e))?;
             }
@@ -500,6 +573,13 @@ pub fn run_headless_with(
         f.flush().map_err(|e| io(path, e))?;
     }
     let end = lens_q.iter(app.world()).next().map(centre).unwrap_or(start);
+    if let (Some(b), Some(t)) = (
+        lens_q.iter(app.world()).next(),
+        tool_q.iter(app.world()).next(),
+    ) {
+        (vectis_in_faces.1, vectis_in_faces.2) =
+            tool_in_faces(&t.0, &lens_triangles, b.positions(), tolerance);
+    }
     let count = |b: &SoftBody| (b.inverted_elements(), b.elements().len());
     let lens_inverted = lens_q.iter(app.world()).next().map_or((0, 0), count);
     let all_inverted = body_q
@@ -556,6 +636,7 @@ pub fn run_headless_with(
         ),
         median_ms_50_90: (!band.0.is_empty()).then(|| (med(&mut band.0), med(&mut band.1))),
         max_tissue_penetration: max_tissue,
+        vectis_in_faces,
         lcp_sweeps: (lcp_sweeps.0, lcp_sweeps.1 as f64 / jam_steps),
         jam: (
             jam.0.len(),
