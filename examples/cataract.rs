@@ -307,8 +307,10 @@ fn print_ranges(done: &[HeadlessSummary], params: &CataractParams, runs: usize) 
         .filter(|s| lens_end(s, params).1 == DELIVERED)
         .count();
     let deepest = done.iter().map(|s| s.max_penetration).fold(0.0, f64::max);
+    let in_faces = done.iter().map(|s| s.vectis_in_faces.0).fold(0.0, f64::max);
     println!(
-        "  delivered in {delivered} of {runs} runs; deepest penetration at a step's end {deepest:.2e} m"
+        "  delivered in {delivered} of {runs} runs; deepest penetration at a step's end {deepest:.2e} m \
+         (vertices; the vectis inside a lens face {in_faces:.2e} m)"
     );
     println!(
         "  solves at the sweep limit per run: {:?}; consistency refreshes per run: {:?}",
