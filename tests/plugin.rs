@@ -634,13 +634,9 @@ fn lens_loads_through_the_asset_server() {
         }
     }
     // Where the asset server reads: its root is taken from the environment
-    // at run time (`BEVY_ASSET_ROOT`, else `CARGO_MANIFEST_DIR`), which can
-    // differ from the directory this test was compiled in.
-    let root = std::env::var_os("BEVY_ASSET_ROOT")
-        .or_else(|| std::env::var_os("CARGO_MANIFEST_DIR"))
-        .map(std::path::PathBuf::from)
-        .unwrap_or_else(|| env!("CARGO_MANIFEST_DIR").into());
-    let dir = root.join("assets");
+    // at run time, which can differ from the directory this test was
+    // compiled in.
+    let dir = bevy::asset::io::file::FileAssetReader::get_base_path().join("assets");
     let bad_name = format!("broken-{}.msh", std::process::id());
     let bad_file = Removed(dir.join(&bad_name));
     std::fs::write(

@@ -341,10 +341,7 @@ pub fn run_headless_with(
         None => None,
     };
     if let Some(r) = recording {
-        std::fs::create_dir_all(&r.dir).map_err(|e| SoftTissueError::Io {
-            path: r.dir.display().to_string(),
-            reason: e.to_string(),
-        })?;
+        std::fs::create_dir_all(&r.dir).map_err(|e| io(&r.dir, e))?;
         app.world_mut()
             .resource_mut::<SoftTissueContacts>()
             .solver
@@ -378,13 +375,7 @@ pub fn run_headless_with(
     let lens_triangles: Vec<[usize; 3]> = lens_q
         .iter(app.world())
         .next()
-        .map(|b| {
-            let s = b.mesh().surface();
-            s.triangles
-                .iter()
-                .map(|t| t.map(|i| s.vertices[i]))
-                .collect()
-        })
+        .map(|b| b.surface().volume_triangles().collect())
         .unwrap_or_default();
     let mut vectis_in_faces = (0.0f64, 0.0f64, 0usize);
     let mut jam = (Vec::new(), Vec::new());
@@ -500,17 +491,17 @@ pub fn run_headless_with(
             let v = b.velocities();
             let mean = v.iter().sum::<bevy_soft_tissue::math::Vec3>() / v.len().max(1) as f64;
             max_lens_speed = max_lens_speed.max(mean.norm());
-            let in_faces = tool_q.iter(world).next().map_or(0.0, |t| {
-                tool_in_faces(&t.0, &lens_triangles, b.positions(), tolerance).0
+            let vectis = tool_q.iter(world).next().map(|t| &t.0);
+            // The last step's figures are the run's end figures.
+            let (in_faces, over) = vectis.map_or((0.0, 0), |t| {
+                tool_in_faces(t, &lens_triangles, b.positions(), tolerance)
             });
-            vectis_in_faces.0 = vectis_in_faces.0.max(in_faces);
+            vectis_in_faces = (vectis_in_faces.0.max(in_faces), in_faces, over);
             if let Some((path, f)) = trace.as_mut() {
                 let c = centre(b) * 1e3;
                 let v = mean * 1e3;
-                let t = tool_q
-                    .iter(world)
-                    .next()
-                    .map(|t| t.0.pose().translation.vector * 1e3)
+                let t = vectis
+                    .map(|t| t.pose().translation.vector * 1e3)
                     .unwrap_or_default();
                 let eye_age = eye_q
                     .iter(world)
@@ -573,13 +564,6 @@ pub fn run_headless_with(
         f.flush().map_err(|e| io(path, e))?;
     }
     let end = lens_q.iter(app.world()).next().map(centre).unwrap_or(start);
-    if let (Some(b), Some(t)) = (
-        lens_q.iter(app.world()).next(),
-        tool_q.iter(app.world()).next(),
-    ) {
-        (vectis_in_faces.1, vectis_in_faces.2) =
-            tool_in_faces(&t.0, &lens_triangles, b.positions(), tolerance);
-    }
     let count = |b: &SoftBody| (b.inverted_elements(), b.elements().len());
     let lens_inverted = lens_q.iter(app.world()).next().map_or((0, 0), count);
     let all_inverted = body_q
