@@ -10,7 +10,7 @@
 //! 50 passes). [`hold_planes`] keeps the last pass's plane of such a vertex
 //! next to its new contact, so that one LCP pushes it out of both.
 
-use super::types::{Contact, ContactOther};
+use super::types::{Contact, ContactOther, ContactSide};
 use crate::math::Vec3;
 
 /// Planes are held only from this refinement pass on: most steps end
@@ -28,13 +28,15 @@ pub(super) const HELD_PLANE_COSINE: f64 = 0.9;
 pub(super) const HELD_PLANE_OPPOSITE: f64 = -0.5;
 
 /// Appends to `contacts` (this pass's detected contacts) the plane of each
-/// `held` contact (the last pass's penetrating ones) whose vertex this pass
+/// `held` contact (the last pass's penetrating ones) whose vertex (or face,
+/// the same nodes) this pass
 /// detected against the same side (the same tool, or the same body) with a
 /// normal turned by a cosine in `[HELD_PLANE_OPPOSITE, HELD_PLANE_COSINE)`,
 /// or not at all. The plane keeps its normal and, on a body, its barycentric
 /// point (carried along with that body's positions); on a tool its point
-/// (tools do not move between the passes of a step). Its gap is measured at
-/// `positions(body)`, and it is added only within `alarm` distance.
+/// (tools do not move between the passes of a step). Its gap is measured
+/// from the vertex (or the face's barycentric point) at `positions(body)`,
+/// and it is added only within `alarm` distance.
 pub(super) fn hold_planes<'a, F>(
     held: &[Contact],
     contacts: &mut Vec<Contact>,
@@ -45,7 +47,7 @@ pub(super) fn hold_planes<'a, F>(
 {
     let detected = contacts.len();
     for held in held {
-        let (body, node) = (held.a.body, held.a.nodes[0]);
+        let (body, nodes) = (held.a.body, held.a.nodes);
         let same_side = |c: &Contact| match (&c.other, &held.other) {
             (ContactOther::Tool(a), ContactOther::Tool(b)) => a == b,
             (ContactOther::Body(a), ContactOther::Body(b)) => a.body == b.body,
@@ -55,32 +57,32 @@ pub(super) fn hold_planes<'a, F>(
         // of the vertex against the same side.
         let cosine = contacts[..detected]
             .iter()
-            .filter(|c| c.a.body == body && c.a.nodes[0] == node && same_side(c))
+            .filter(|c| c.a.body == body && c.a.nodes == nodes && same_side(c))
             .map(|c| c.normal.dot(&held.normal))
             .reduce(f64::max);
         if cosine.is_some_and(|k| !(HELD_PLANE_OPPOSITE..HELD_PLANE_COSINE).contains(&k)) {
             continue;
         }
-        let Some(&p) = positions(body).and_then(|x| x.get(node as usize)) else {
+        // The side's barycentric point where its body is now.
+        let at = |side: &ContactSide| {
+            positions(side.body).and_then(|x| {
+                side.nodes
+                    .iter()
+                    .zip(side.weights)
+                    .filter(|&(_, w)| w != 0.0)
+                    .map(|(&n, w)| x.get(n as usize).map(|x| x * w))
+                    .sum::<Option<Vec3>>()
+            })
+        };
+        let Some(p) = at(&held.a) else {
             continue;
         };
         let q = match &held.other {
             ContactOther::Tool(_) => held.point,
-            // The face's barycentric point where the other body is now.
-            ContactOther::Body(side) => {
-                let point = positions(side.body).and_then(|xb| {
-                    side.nodes
-                        .iter()
-                        .zip(side.weights)
-                        .filter(|&(_, w)| w != 0.0)
-                        .map(|(&n, w)| xb.get(n as usize).map(|x| x * w))
-                        .sum::<Option<Vec3>>()
-                });
-                match point {
-                    Some(q) => q,
-                    None => continue,
-                }
-            }
+            ContactOther::Body(side) => match at(side) {
+                Some(q) => q,
+                None => continue,
+            },
         };
         let gap = held.normal.dot(&(p - q));
         if gap < alarm {
@@ -97,7 +99,7 @@ pub(super) fn hold_planes<'a, F>(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::contact::types::{ContactSide, tangent_basis};
+    use crate::contact::types::tangent_basis;
 
     fn contact(node: u32, other: ContactOther, normal: Vec3, gap: f64, point: Vec3) -> Contact {
         Contact {
@@ -163,6 +165,43 @@ mod tests {
         // Turned by 90° or 110°: kept.
         assert_eq!(one(Some(unit(1.0, 0.0, 0.0)), p).len(), 2);
         assert_eq!(one(Some(unit(1.0, 0.0, -0.36)), p).len(), 2);
+    }
+
+    #[test]
+    fn a_face_keeps_its_plane_at_its_barycentric_point() {
+        // A tool inside a face (nodes 0, 1, 2 at weights ½, ¼, ¼) 5 µm
+        // under a +z plane; this pass the face's point is 2 µm under it and
+        // its only contact of the tool turned to +x.
+        let x = [
+            Vec3::new(0.0, 0.0, -2e-6),
+            Vec3::new(1e-3, 0.0, -2e-6),
+            Vec3::new(0.0, 1e-3, -2e-6),
+            Vec3::new(5.0, 5.0, 5.0),
+        ];
+        let face = |normal: Vec3, gap: f64| Contact {
+            a: ContactSide {
+                body: 0,
+                nodes: [0, 1, 2],
+                weights: [0.5, 0.25, 0.25],
+            },
+            ..contact(3, ContactOther::Tool(0), normal, gap, Vec3::zeros())
+        };
+        let held = [face(Vec3::z(), -5e-6)];
+        let mut contacts = vec![face(unit(1.0, 0.0, 0.0), -1e-6)];
+        hold_planes(&held, &mut contacts, |b| (b == 0).then_some(&x[..]), 1e-4);
+        assert_eq!(contacts.len(), 2);
+        assert_eq!(contacts[1].a, held[0].a);
+        // Measured from the point (0.25, 0.25, −2) µm·mm, not from node 0.
+        assert!(
+            (contacts[1].gap + 2e-6).abs() < 1e-15,
+            "{}",
+            contacts[1].gap
+        );
+        // The same plane on a vertex contact of node 0 is another contact:
+        // the face's is held beside it.
+        let mut beside = vec![contact(0, ContactOther::Tool(0), Vec3::z(), -2e-6, x[0])];
+        hold_planes(&held, &mut beside, |b| (b == 0).then_some(&x[..]), 1e-4);
+        assert_eq!(beside.len(), 2);
     }
 
     #[test]

@@ -129,6 +129,9 @@ pub struct ContactSolver {
     /// planes the next pass keeps where its detection turned the vertex's
     /// normal (see [`Self::refine`] and [`held::HOLD_FROM_PASS`]).
     held: Vec<Contact>,
+    /// The last pass's tool contacts inside faces, which the next
+    /// refinement pass keeps ([`detect::keep_faces`]).
+    faces: Vec<Contact>,
     h: f64,
     /// First passes so far (the prediction's step count).
     steps: u64,
@@ -321,9 +324,25 @@ impl ContactSolver {
         let params = DetectParams {
             margin: self.settings.alarm_distance,
             body_friction: self.settings.body_friction,
+            tool_faces: self.settings.tool_faces,
+            face_deeper: self.settings.penetration_tolerance,
         };
         self.report.pairs_tested =
             detect::detect(&mut self.detect, bodies, tools, params, &mut self.contacts);
+        if params.tool_faces {
+            if pass == PassKind::Refine {
+                detect::keep_faces(
+                    &self.faces,
+                    &self.detect,
+                    tools,
+                    params.margin,
+                    &mut self.contacts,
+                );
+            }
+            self.faces.clear();
+            let faces = self.contacts.iter().filter(|c| detect::is_tool_face(c));
+            self.faces.extend(faces);
+        }
         if pass == PassKind::Refine || !self.settings.friction {
             for c in &mut self.contacts {
                 c.mu = 0.0;
@@ -459,7 +478,7 @@ impl ContactSolver {
     fn key<B: Bodies + ?Sized>(c: &Contact, bodies: &B) -> ContactKey {
         ContactKey {
             body: bodies.body(c.a.body).id(),
-            node: c.a.nodes[0],
+            nodes: c.a.nodes,
             other: match c.other {
                 ContactOther::Tool(t) => OtherKey::Tool(t),
                 ContactOther::Body(s) => OtherKey::Body(bodies.body(s.body).id()),

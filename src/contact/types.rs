@@ -38,10 +38,14 @@ pub enum ContactOther {
     Body(ContactSide),
 }
 
-/// A contact between a surface vertex and a tool or another body's surface.
+/// A contact between a surface vertex and a tool or another body's surface,
+/// or between a point inside a surface triangle and a tool
+/// ([`super::ContactSettings::tool_faces`]).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Contact {
-    /// The vertex side (weight 1 on one node).
+    /// The vertex side (weight 1 on one node), or the face side of a tool
+    /// inside a surface triangle (the point's barycentric weights on the
+    /// triangle's three nodes).
     pub a: ContactSide,
     /// The other side.
     pub other: ContactOther,
@@ -100,7 +104,8 @@ pub struct ContactReport {
     /// worker's), all passes. The rescue's rebuilt `W`, LCP and correction
     /// count in `compliance`, `lcp_seconds` and `correct`.
     pub rescue: f64,
-    /// Vertex–tool pairs tested in detection.
+    /// Vertex–tool pairs tested in detection, and with
+    /// [`super::ContactSettings::tool_faces`] the face points tested.
     pub pairs_tested: usize,
     /// Contact passes run (see [`super::ContactSettings::max_passes`]).
     pub passes: usize,

@@ -365,3 +365,132 @@ fn refinement_passes_end_every_step_within_the_tolerance() {
     }
     assert!(refined > 0, "no step needed a refinement pass");
 }
+
+/// A 2 × 2 × 1 mm block of one cell (two triangles on its top face at
+/// z = 0), its bottom fixed, under `tool`, with `ContactSettings::tool_faces`
+/// set to `faces`.
+fn block_under(tool: RigidTool, faces: bool) -> Scene {
+    let mesh = generate::box_mesh(
+        Vec3::new(-1e-3, -1e-3, -1e-3),
+        Vec3::new(1e-3, 1e-3, 0.0),
+        [1, 1, 1],
+    )
+    .unwrap();
+    let mut body = DeformableBody::new(
+        mesh,
+        TissueMaterial::new(1000.0, 2e4, 0.4),
+        Default::default(),
+    )
+    .unwrap();
+    body.fix_where(|p| p.z < -0.9e-3);
+    let mut scene = Scene::new(ContactSettings {
+        tool_faces: faces,
+        ..Default::default()
+    })
+    .unwrap();
+    scene.add_body(body);
+    scene.add_tool(tool);
+    scene
+}
+
+/// The deepest point of the body's surface triangles inside tool 0 on the
+/// barycentric grid of step 1/48, corners left out (metres, 0 if none).
+fn deepest_in_faces(scene: &Scene) -> f64 {
+    let (body, tool) = (&scene.bodies[0], &scene.tools[0]);
+    let x = body.positions();
+    let mut deepest = 0.0f64;
+    for t in body.surface().volume_triangles() {
+        let p = t.map(|i| x[i]);
+        for i in 0..=48 {
+            for j in 0..=48 - i {
+                if i == 48 || j == 48 || i + j == 0 {
+                    continue;
+                }
+                let (a, b) = (i as f64 / 48.0, j as f64 / 48.0);
+                let q = p[0] + (p[1] - p[0]) * a + (p[2] - p[0]) * b;
+                if let Some(pr) = tool.proximity(&q, 1e-3) {
+                    deepest = deepest.min(pr.distance);
+                }
+            }
+        }
+    }
+    -deepest
+}
+
+#[test]
+fn a_tool_between_vertices_is_held_out_of_the_face() {
+    // A 0.3 mm sphere 50 µm into the top face, far from every vertex (the
+    // nearest is about 1 mm from it, ten alarm distances).
+    let tool = || {
+        RigidTool::new(
+            ToolShape::Sphere { radius: 0.3e-3 },
+            at(-0.6e-3, 0.2e-3, 0.25e-3),
+        )
+        .unwrap()
+    };
+    let tol = ContactSettings::default().penetration_tolerance;
+    // Vertex contacts only: nothing is detected and the sphere stays inside.
+    let mut off = block_under(tool(), false);
+    let r = off.step(0.01).unwrap();
+    assert_eq!(r.contacts, 0);
+    let left = deepest_in_faces(&off);
+    assert!(left > 40e-6, "{left:e} m");
+    // With face contacts: one inside a triangle, and every step ends with
+    // the face out of the sphere to the tolerance.
+    let mut on = block_under(tool(), true);
+    let triangles: Vec<[usize; 3]> = on.bodies[0].surface().volume_triangles().collect();
+    for step in 0..4 {
+        let r = on.step(0.01).unwrap();
+        assert!(r.contacts >= 1, "step {step}");
+        let faces: Vec<_> = on
+            .contact
+            .contacts()
+            .iter()
+            .filter(|c| c.a.weights[0] < 1.0)
+            .collect();
+        assert!(!faces.is_empty(), "step {step}: no face contact");
+        for c in faces {
+            assert_eq!(c.other, bevy_soft_tissue::contact::ContactOther::Tool(0));
+            let mut nodes = c.a.nodes.map(|n| n as usize);
+            nodes.sort_unstable();
+            assert!(
+                triangles.iter().any(|t| {
+                    let mut t = *t;
+                    t.sort_unstable();
+                    t == nodes
+                }),
+                "step {step}: {:?} is not a surface triangle",
+                c.a.nodes
+            );
+            assert!((c.a.weights.iter().sum::<f64>() - 1.0).abs() < 1e-12);
+        }
+        let depth = deepest_in_faces(&on);
+        assert!(depth <= 2.0 * tol, "step {step}: {depth:e} m into the face");
+    }
+}
+
+#[test]
+fn a_flat_tool_face_adds_no_face_contacts() {
+    // A box pressed 20 µm flat into the whole top face: the signed distance
+    // is linear over each triangle, so the vertices carry the contact and
+    // no face contact (a redundant row) is added; the same contacts as
+    // without face contacts.
+    let tool = || {
+        let half = Vec3::new(2e-3, 2e-3, 0.5e-3);
+        RigidTool::new(
+            ToolShape::Box { half_extents: half },
+            at(0.0, 0.0, 0.5e-3 - 20e-6),
+        )
+        .unwrap()
+    };
+    let (mut on, mut off) = (block_under(tool(), true), block_under(tool(), false));
+    let (r_on, r_off) = (on.step(0.01).unwrap(), off.step(0.01).unwrap());
+    assert!(r_on.contacts >= 4);
+    assert_eq!(r_on.contacts, r_off.contacts);
+    assert!(
+        on.contact
+            .contacts()
+            .iter()
+            .all(|c| c.a.weights == [1.0, 0.0, 0.0])
+    );
+}

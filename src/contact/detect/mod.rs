@@ -29,6 +29,7 @@ mod geometry;
 pub use geometry::{Bvh, boxes_overlap, closest_point_on_triangle, point_in_tet, segment_triangle};
 
 use super::bodies::{Bodies, Tools};
+use super::tool::{RigidTool, ToolProximity};
 use super::types::{Contact, ContactOther, ContactSide, tangent_basis};
 use crate::body::NodeConstraint;
 use crate::math::Vec3;
@@ -46,6 +47,9 @@ pub struct DetectBody {
     /// The largest of `extra`.
     pub(crate) max_extra: f64,
     aabb: (Vec3, Vec3),
+    /// Per node, a lower bound on its signed distance to the tool being
+    /// detected (exact where the vertex was queried), for the face samples.
+    corner: Vec<f64>,
 }
 
 impl DetectBody {
@@ -81,6 +85,51 @@ pub struct DetectParams {
     pub margin: f64,
     /// Friction between bodies.
     pub body_friction: f64,
+    /// Tool contacts inside surface triangles as well
+    /// ([`super::ContactSettings::tool_faces`]).
+    pub tool_faces: bool,
+    /// A face sample becomes a contact only where it is deeper than all
+    /// three corners by more than this, metres (the penetration tolerance):
+    /// a tool's edge or corner between the vertices. Against a flat tool face
+    /// the signed distance is linear over the triangle, never deeper inside
+    /// than at a corner, so the vertex contacts carry it and no redundant
+    /// row is added.
+    pub face_deeper: f64,
+}
+
+/// The barycentric points of a surface triangle that face detection
+/// ([`DetectParams::tool_faces`]) starts from: the centroid and the points of
+/// the grid of step ¼ other than the corners, three inside and three on each
+/// edge (an edge's points tested by one of its two triangles, see
+/// [`tool_faces`]).
+pub const FACE_SAMPLES: [[f64; 3]; 13] = [
+    [1.0 / 3.0, 1.0 / 3.0, 1.0 / 3.0],
+    [0.5, 0.25, 0.25],
+    [0.25, 0.5, 0.25],
+    [0.25, 0.25, 0.5],
+    [0.75, 0.25, 0.0],
+    [0.5, 0.5, 0.0],
+    [0.25, 0.75, 0.0],
+    [0.0, 0.75, 0.25],
+    [0.0, 0.5, 0.5],
+    [0.0, 0.25, 0.75],
+    [0.25, 0.0, 0.75],
+    [0.5, 0.0, 0.5],
+    [0.75, 0.0, 0.25],
+];
+
+/// Whether the barycentric point `w` of triangle `tri` is this triangle's to
+/// test: inside it, or on an edge that it runs from the lower node to the
+/// higher (the edge's other triangle runs it the other way); never a corner.
+fn owns(tri: &[usize; 3], w: &[f64; 3]) -> bool {
+    match w.iter().filter(|&&c| c == 0.0).count() {
+        0 => true,
+        1 => {
+            let z = w.iter().position(|&c| c == 0.0).unwrap_or(0);
+            tri[(z + 1) % 3] < tri[(z + 2) % 3]
+        }
+        _ => false,
+    }
 }
 
 /// Finds the contacts of all bodies at their positions `DetectBody::x`; returns the
@@ -94,7 +143,7 @@ pub fn detect<B: Bodies + ?Sized, T: Tools + ?Sized>(
 ) -> usize {
     let margin = params.margin;
     let mut pairs = 0;
-    for (bi, st) in state.iter().enumerate().take(bodies.len()) {
+    for (bi, st) in state.iter_mut().enumerate().take(bodies.len()) {
         let body = bodies.body(bi);
         let (x, x0, fixed) = (&st.x, body.start_positions(), body.constraints());
         let surface_mu = body.material().tool_friction;
@@ -104,15 +153,31 @@ pub fn detect<B: Bodies + ?Sized, T: Tools + ?Sized>(
             if !boxes_overlap(&st.aabb, &tb, 0.0) {
                 continue;
             }
+            if params.tool_faces {
+                // Outside the grown bounds a vertex is farther than their margin.
+                st.corner.clear();
+                st.corner.resize(x.len(), margin + st.max_extra);
+            }
             for &v in &body.surface().vertices {
                 let p = x[v];
-                if fixed[v] != NodeConstraint::Free || !boxes_overlap(&(p, p), &tb, 0.0) {
+                if !boxes_overlap(&(p, p), &tb, 0.0) {
+                    continue;
+                }
+                let band = margin + st.extra[v];
+                let reach = band + tool.inner_radius();
+                if fixed[v] != NodeConstraint::Free {
+                    if params.tool_faces {
+                        st.corner[v] = tool.proximity(&p, reach).map_or(reach, |q| q.distance);
+                    }
                     continue;
                 }
                 pairs += 1;
-                let band = margin + st.extra[v];
                 // Search deep enough to find the surface from anywhere inside the tool.
-                let Some(prox) = tool.proximity(&p, band + tool.inner_radius()) else {
+                let prox = tool.proximity(&p, reach);
+                if params.tool_faces {
+                    st.corner[v] = prox.map_or(reach, |q| q.distance);
+                }
+                let Some(prox) = prox else {
                     continue;
                 };
                 if prox.distance >= band {
@@ -135,6 +200,16 @@ pub fn detect<B: Bodies + ?Sized, T: Tools + ?Sized>(
                     point: prox.point,
                     force: Vec3::zeros(),
                 });
+            }
+            if params.tool_faces {
+                let face = FaceDetect {
+                    body: bi,
+                    tool: ti,
+                    margin,
+                    mu: surface_mu.unwrap_or(tool.friction()),
+                    deeper: params.face_deeper,
+                };
+                pairs += tool_faces(st, body, tools.tool(ti), &tb, face, out);
             }
         }
     }
@@ -161,6 +236,218 @@ pub fn detect<B: Bodies + ?Sized, T: Tools + ?Sized>(
         }
     }
     pairs
+}
+
+/// Which body and tool [`tool_faces`] detects, and with what.
+#[derive(Debug, Clone, Copy)]
+struct FaceDetect {
+    body: usize,
+    tool: usize,
+    margin: f64,
+    mu: f64,
+    deeper: f64,
+}
+
+/// Contacts of `tool` inside the surface triangles of body `f.body`
+/// ([`DetectParams::tool_faces`]), after the vertex contacts have filled
+/// `st.corner` with the corners' signed distances (or lower bounds on them);
+/// returns the sample–tool pairs tested.
+///
+/// Each triangle whose bounds meet the tool's `tb` and that has a free node
+/// tests the [`FACE_SAMPLES`] that can lie within the alarm band (the signed
+/// distance is 1-Lipschitz, so a sample is at least a corner's distance
+/// less its distance to that corner) and keeps the deepest. That sample
+/// makes a contact on the triangle's three nodes, weighted by its barycentric
+/// coordinates, where it is within the band and deeper than every corner by
+/// [`DetectParams::face_deeper`].
+fn tool_faces(
+    st: &DetectBody,
+    body: &crate::body::DeformableBody,
+    tool: &RigidTool,
+    tb: &(Vec3, Vec3),
+    f: FaceDetect,
+    out: &mut Vec<Contact>,
+) -> usize {
+    let (x, x0, fixed) = (&st.x, body.start_positions(), body.constraints());
+    let mut pairs = 0;
+    for tri in &st.tris {
+        let [i, j, k] = *tri;
+        let p = [x[i], x[j], x[k]];
+        let (lo, hi) = (p[0].inf(&p[1]).inf(&p[2]), p[0].sup(&p[1]).sup(&p[2]));
+        if !boxes_overlap(&(lo, hi), tb, 0.0)
+            || tri.iter().all(|&n| fixed[n] != NodeConstraint::Free)
+        {
+            continue;
+        }
+        let d = [st.corner[i], st.corner[j], st.corner[k]];
+        let shallowest = d[0].min(d[1]).min(d[2]);
+        let band = f.margin + tri.iter().map(|&n| st.extra[n]).fold(0.0, f64::max);
+        // Deep enough to count: below the band and below every corner.
+        let limit = band.min(shallowest - f.deeper);
+        let mut best: Option<(f64, [f64; 3], ToolProximity)> = None;
+        for w in FACE_SAMPLES.iter().filter(|w| owns(tri, w)) {
+            let q = p[0] * w[0] + p[1] * w[1] + p[2] * w[2];
+            let bound = (0..3)
+                .map(|c| d[c] - (q - p[c]).norm())
+                .fold(f64::NEG_INFINITY, f64::max);
+            if bound >= limit {
+                continue;
+            }
+            pairs += 1;
+            let reach = limit.max(0.0) + tool.inner_radius();
+            let Some(prox) = tool.proximity(&q, reach) else {
+                continue;
+            };
+            if prox.distance < limit && best.is_none_or(|b| prox.distance < b.2.distance) {
+                best = Some((prox.distance, *w, prox));
+            }
+        }
+        let Some((_, w, prox)) = best else {
+            continue;
+        };
+        let reach = limit.max(0.0) + tool.inner_radius();
+        let (w, prox) = deepest_near(&p, w, prox, tool, reach, &mut pairs);
+        // On an edge: the edge's, as above; at a corner: the vertex's.
+        if !owns(tri, &w) {
+            continue;
+        }
+        let q = p[0] * w[0] + p[1] * w[1] + p[2] * w[2];
+        let q0 = x0[i] * w[0] + x0[j] * w[1] + x0[k] * w[2];
+        let t = tangent_basis(&prox.normal);
+        let rel = (q - q0) - tool.displacement_at(&prox.point);
+        out.push(Contact {
+            a: ContactSide {
+                body: f.body,
+                nodes: [i as u32, j as u32, k as u32],
+                weights: w,
+            },
+            other: ContactOther::Tool(f.tool),
+            normal: prox.normal,
+            tangents: t,
+            gap: prox.distance,
+            slip: [t[0].dot(&rel), t[1].dot(&rel)],
+            mu: f.mu,
+            point: prox.point,
+            force: Vec3::zeros(),
+        });
+    }
+    pairs
+}
+
+/// Refinement levels of [`deepest_near`]: the step halves from an eighth
+/// of the triangle (half the spacing of [`FACE_SAMPLES`]) to a 128th.
+const DEEPEST_LEVELS: usize = 5;
+
+/// The deepest point inside `tool` of the triangle `p` near the barycentric
+/// point `w` (whose proximity is `prox`): a pattern search that moves the
+/// point by `step` along the six directions between two corners, to the
+/// deepest neighbour inside the triangle, and halves the step where none is
+/// deeper. Counts its proximity queries in `pairs`.
+fn deepest_near(
+    p: &[Vec3; 3],
+    mut w: [f64; 3],
+    mut prox: ToolProximity,
+    tool: &RigidTool,
+    reach: f64,
+    pairs: &mut usize,
+) -> ([f64; 3], ToolProximity) {
+    let mut step: f64 = 1.0 / 8.0;
+    for _ in 0..DEEPEST_LEVELS {
+        loop {
+            let mut moved = false;
+            for (from, to) in [(0, 1), (1, 0), (1, 2), (2, 1), (2, 0), (0, 2)] {
+                let mut v = w;
+                let s = step.min(v[from]);
+                if s <= 0.0 {
+                    continue;
+                }
+                v[from] -= s;
+                v[to] += s;
+                if v[from] < 1e-12 {
+                    v[from] = 0.0;
+                }
+                *pairs += 1;
+                let q = p[0] * v[0] + p[1] * v[1] + p[2] * v[2];
+                if let Some(near) = tool.proximity(&q, reach)
+                    && near.distance < prox.distance
+                {
+                    (w, prox, moved) = (v, near, true);
+                }
+            }
+            if !moved {
+                break;
+            }
+        }
+        step *= 0.5;
+    }
+    (w, prox)
+}
+
+/// Whether `c` is a tool's contact inside a surface triangle
+/// ([`DetectParams::tool_faces`]).
+pub fn is_tool_face(c: &Contact) -> bool {
+    matches!(c.other, ContactOther::Tool(_)) && c.a.weights[0] < 1.0
+}
+
+/// Adds to a refinement pass's contacts `out` the face contacts `kept` of
+/// the pass before that this pass did not detect again (the same body,
+/// triangle, barycentric point and tool), measured at the positions
+/// `state[body].x`, where they are within the alarm distance `margin`.
+///
+/// A pass's face contact is the deepest point of its triangle; the pass
+/// pushes that point out, which can tilt the triangle and leave another of
+/// its points the deepest. Detected alone, the next pass's contact would
+/// push the new point out and let the first one sink back, and the passes
+/// take turns (in the cataract scene up to 64 passes in a step). Kept, each
+/// pass adds the new point to those pushed out so far.
+pub fn keep_faces<T: Tools + ?Sized>(
+    kept: &[Contact],
+    state: &[DetectBody],
+    tools: &T,
+    margin: f64,
+    out: &mut Vec<Contact>,
+) {
+    let detected = out.len();
+    for c in kept {
+        let ContactOther::Tool(ti) = c.other else {
+            continue;
+        };
+        if ti >= tools.len()
+            || out[..detected]
+                .iter()
+                .any(|d| d.other == c.other && d.a == c.a)
+        {
+            continue;
+        }
+        let Some(x) = state.get(c.a.body).map(|s| &s.x) else {
+            continue;
+        };
+        let Some(q) =
+            c.a.nodes
+                .iter()
+                .zip(c.a.weights)
+                .map(|(&n, w)| x.get(n as usize).map(|p| p * w))
+                .sum::<Option<Vec3>>()
+        else {
+            continue;
+        };
+        let tool = tools.tool(ti);
+        let Some(prox) = tool.proximity(&q, margin + tool.inner_radius()) else {
+            continue;
+        };
+        if prox.distance >= margin {
+            continue;
+        }
+        out.push(Contact {
+            normal: prox.normal,
+            tangents: tangent_basis(&prox.normal),
+            gap: prox.distance,
+            slip: [0.0; 2],
+            point: prox.point,
+            force: Vec3::zeros(),
+            ..*c
+        });
+    }
 }
 
 /// State `a` to read and state `b` to update (`a ≠ b`).
@@ -316,5 +603,59 @@ fn vertex_triangle<B: Bodies + ?Sized>(
             point: q,
             force: Vec3::zeros(),
         });
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::contact::tool::{Pose, ToolShape};
+
+    #[test]
+    fn each_edge_point_is_tested_by_one_of_its_two_triangles() {
+        // Two triangles of a closed surface share the edge 1–2, run
+        // 1 → 2 by the first and 2 → 1 by the second.
+        let (t, u) = ([0, 1, 2], [3, 2, 1]);
+        let on_edge = |tri: &[usize; 3], a: usize, b: usize| {
+            FACE_SAMPLES
+                .iter()
+                .filter(|w| {
+                    let zero = (0..3).find(|&c| tri[c] != a && tri[c] != b);
+                    zero.is_some_and(|z| w[z] == 0.0) && owns(tri, w)
+                })
+                .count()
+        };
+        assert_eq!(on_edge(&t, 1, 2) + on_edge(&u, 1, 2), 3);
+        assert!(on_edge(&t, 1, 2) == 3 || on_edge(&u, 1, 2) == 3);
+        // Inside points are every triangle's; corners are none's.
+        assert!(owns(&t, &[0.5, 0.25, 0.25]) && owns(&u, &[0.5, 0.25, 0.25]));
+        assert!(!owns(&t, &[1.0, 0.0, 0.0]));
+        // Every sample is a point of the triangle.
+        for w in FACE_SAMPLES {
+            assert!((w.iter().sum::<f64>() - 1.0).abs() < 1e-15);
+            assert!(w.iter().all(|&c| (0.0..1.0).contains(&c)));
+        }
+    }
+
+    #[test]
+    fn the_pattern_search_finds_the_deepest_point_of_a_face() {
+        // A sphere of 0.3 mm whose centre is 0.25 mm above the point
+        // (0.3, 0.2) mm of a 1 mm triangle in the plane z = 0: 50 µm deep there.
+        let p = [
+            Vec3::zeros(),
+            Vec3::new(1e-3, 0.0, 0.0),
+            Vec3::new(0.0, 1e-3, 0.0),
+        ];
+        let pose = Pose::translation(0.3e-3, 0.2e-3, 0.25e-3);
+        let tool = RigidTool::new(ToolShape::Sphere { radius: 0.3e-3 }, pose).unwrap();
+        let w = FACE_SAMPLES[0];
+        let start = tool.proximity(&((p[0] + p[1] + p[2]) / 3.0), 1.0).unwrap();
+        let mut pairs = 0;
+        let (w, prox) = deepest_near(&p, w, start, &tool, 1.0, &mut pairs);
+        assert!(prox.distance < start.distance);
+        assert!((prox.distance + 50e-6).abs() < 5e-7, "{}", prox.distance);
+        let q = p[0] * w[0] + p[1] * w[1] + p[2] * w[2];
+        assert!((q - Vec3::new(0.3e-3, 0.2e-3, 0.0)).norm() < 1e-5, "{q}");
+        assert!(pairs > 0);
     }
 }

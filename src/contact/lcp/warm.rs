@@ -1,14 +1,17 @@
 //! Warm start: the forces of the last step's first pass, by contact identity.
 
-/// Identity of a contact across steps: (body id, vertex, other side), where the
+/// Identity of a contact across steps: (body id, its nodes, other side), where
+/// the nodes are a vertex's (`[v, 0, 0]`) or a surface triangle's (a tool
+/// inside a face, [`crate::contact::ContactSettings::tool_faces`]) and the
 /// other side is a tool index or a body id.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
 pub struct ContactKey {
     /// Id of the vertex's body ([`crate::body::DeformableBody::id`]).
     pub body: u64,
-    /// The vertex.
-    pub node: u32,
-    /// What the vertex touches.
+    /// The contact's nodes on that body: `[v, 0, 0]` for a vertex, the
+    /// triangle's three for a face.
+    pub nodes: [u32; 3],
+    /// What the vertex or face touches.
     pub other: OtherKey,
 }
 
