@@ -56,10 +56,11 @@ pub struct HeadlessSummary {
     /// The part of [`Self::max_penetration`] between the two bodies (lens–sclera), metres.
     pub max_tissue_penetration: f64,
     /// How deep the vectis reaches inside the lens's surface triangles between
-    /// their vertices, metres: the deepest of [`FACE_POINTS`] on each triangle
+    /// their vertices, metres: the deepest point of the [`FACE_GRID`] on each triangle
     /// near the vectis, at the end of every step, and at the end of the run
-    /// with the number of triangles deeper than [`Self::tolerance`]. The
-    /// contacts (and [`Self::max_penetration`]) test the vertices only.
+    /// with the number of triangles deeper than [`Self::tolerance`].
+    /// [`Self::max_penetration`] tests the vertices only, and so do the
+    /// contacts unless `ContactSettings::tool_faces` is on.
     pub vectis_in_faces: (f64, f64, usize),
     /// Penetration tolerance used (1 % of the smallest lens edge), metres.
     pub tolerance: f64,
@@ -188,22 +189,20 @@ pub struct Recording {
     pub min_contacts: usize,
 }
 
-/// Barycentric points (weights of the second and third corner) on each lens
-/// surface triangle that [`HeadlessSummary::vectis_in_faces`] tests: the
-/// centroid, the three edge midpoints and three points between them.
-pub const FACE_POINTS: [(f64, f64); 7] = [
-    (1.0 / 3.0, 1.0 / 3.0),
-    (0.5, 0.5),
-    (0.5, 0.0),
-    (0.0, 0.5),
-    (0.25, 0.25),
-    (0.5, 0.25),
-    (0.25, 0.5),
-];
+/// How finely [`tool_in_faces`] tests each lens surface triangle: the
+/// barycentric grid of step `1 / FACE_GRID` (91 points with the corners), a
+/// finer set than the contacts' own face samples
+/// (`bevy_soft_tissue::contact::detect::FACE_SAMPLES`, with
+/// `ContactSettings::tool_faces`), so that the check does not only confirm
+/// the points the contacts hold out.
+pub const FACE_GRID: usize = 12;
 
-/// The deepest of [`FACE_POINTS`] inside `tool` over the surface triangles
-/// `triangles` of positions `x` whose bounds meet the tool's (0 where none is
-/// inside), and how many triangles reach deeper than `tolerance`.
+/// The deepest point of the [`FACE_GRID`] inside `tool` over the surface
+/// triangles `triangles` of positions `x` whose bounds meet the tool's (0
+/// where none is inside), and how many triangles reach deeper than
+/// `tolerance`. A grid point is queried only where its corners' distances
+/// to the tool allow it inside (a signed distance changes no faster than
+/// the distance moved).
 pub fn tool_in_faces(
     tool: &bevy_soft_tissue::contact::RigidTool,
     triangles: &[[usize; 3]],
@@ -213,6 +212,8 @@ pub fn tool_in_faces(
     let (lo, hi) = tool.aabb(0.0);
     // A point inside the tool is nearer its surface than the box's diagonal.
     let reach = (hi - lo).norm();
+    let distance =
+        |q: &bevy_soft_tissue::math::Vec3| tool.proximity(q, reach).map_or(reach, |pr| pr.distance);
     let (mut deepest, mut count) = (0.0f64, 0);
     for t in triangles {
         let p = t.map(|i| x[i]);
@@ -220,11 +221,21 @@ pub fn tool_in_faces(
         if (0..3).any(|k| thi[k] < lo[k] || tlo[k] > hi[k]) {
             continue;
         }
+        let d = p.map(|c| distance(&c));
         let mut tri = 0.0f64;
-        for (a, b) in FACE_POINTS {
-            let q = p[0] + (p[1] - p[0]) * a + (p[2] - p[0]) * b;
-            if let Some(pr) = tool.proximity(&q, reach) {
-                tri = tri.min(pr.distance);
+        for i in 0..=FACE_GRID {
+            for j in 0..=FACE_GRID - i {
+                if i == FACE_GRID || j == FACE_GRID || i + j == 0 {
+                    continue; // a corner: the vertex contacts' own
+                }
+                let (a, b) = (i as f64 / FACE_GRID as f64, j as f64 / FACE_GRID as f64);
+                let q = p[0] + (p[1] - p[0]) * a + (p[2] - p[0]) * b;
+                let bound = (0..3)
+                    .map(|c| d[c] - (q - p[c]).norm())
+                    .fold(f64::NEG_INFINITY, f64::max);
+                if bound < tri {
+                    tri = tri.min(distance(&q));
+                }
             }
         }
         deepest = deepest.min(tri);

@@ -93,11 +93,18 @@ pub struct ContactSettings {
     /// face between its vertices, where no vertex contact sees it: in the
     /// cataract scene the vectis went up to 0.39 mm into the lens's faces,
     /// more than the lens's smallest edges. With this on, each surface
-    /// triangle near a tool tests seven barycentric points
-    /// ([`super::detect::FACE_SAMPLES`]) and the deepest one inside the alarm
-    /// band, where it is deeper than all three corners, becomes a contact on
-    /// the triangle's three nodes. A flat tool face against a face adds no row
-    /// (the vertices carry it). Off by default.
+    /// triangle near a tool tests 13 barycentric points
+    /// ([`super::detect::FACE_SAMPLES`]), refines the deepest by a pattern
+    /// search, and where that point is inside the alarm band and deeper than
+    /// all three corners by [`Self::penetration_tolerance`] makes it a contact
+    /// on the triangle's three nodes, weighted by its barycentric
+    /// coordinates. A flat tool face against a face adds no row (the vertices
+    /// carry it). Refinement passes keep the pass before's face contacts, and
+    /// the penetration they end within covers these points too. Off by
+    /// default: it costs detection time and rows, and the cataract scene's
+    /// scripted delivery, whose vectis held the lens partly by its rim's bite
+    /// into the lens, then loses the lens more often (see the README,
+    /// "Tool contacts inside faces").
     pub tool_faces: bool,
 }
 

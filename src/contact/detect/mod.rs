@@ -3,7 +3,10 @@
 //! - **Tool – body**: every surface vertex inside the tool's bounds (grown
 //!   by the alarm distance) is projected into the tool frame (parry3d-f64);
 //!   a signed distance below the alarm distance makes a contact with the
-//!   tool's outward normal.
+//!   tool's outward normal. With [`DetectParams::tool_faces`] the surface
+//!   triangles near the tool are searched for points inside it between
+//!   their vertices as well ([`FACE_SAMPLES`]): a tool's edge or corner
+//!   pressed into a face, which the vertices alone never see.
 //! - **Body – body**: the surface vertices of one body against the surface
 //!   triangles of the other, in both directions. Each body keeps a bounding
 //!   volume hierarchy of its surface triangles and one of its tetrahedra, both
