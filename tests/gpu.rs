@@ -185,6 +185,31 @@ fn gpu_w_matches_cpu_w_on_lens_with_90_friction_contacts() {
         cpu_w,
         "after a new factor, by pieces",
     );
+    // Contacts inside faces (`ContactSettings::tool_faces`): every other
+    // contact on the three nodes of a surface triangle at its vertex
+    // (weight ½ there, ¼ at the other two), beside vertex contacts.
+    let triangles: Vec<[usize; 3]> = body.surface().volume_triangles().collect();
+    let mut faces = contacts.clone();
+    for c in faces.iter_mut().step_by(2) {
+        let v = c.a.nodes[0] as usize;
+        let t = triangles.iter().find(|t| t.contains(&v)).unwrap();
+        c.a.nodes = t.map(|i| i as u32);
+        c.a.weights = t.map(|i| if i == v { 0.5 } else { 0.25 });
+    }
+    cpu.set_contacts(&faces, &[&body], 0.01).unwrap();
+    cpu.build_compliance(&mut [&mut body], PassKind::First, None)
+        .unwrap();
+    on_gpu.set_contacts(&faces, &[&body], 0.01).unwrap();
+    gpu.forward_walk = ForwardWalk::Nodes;
+    let cpu_w = cpu.delassus();
+    assert_eq!(cpu_w.1, 270);
+    assert_gpu_w_matches(
+        &mut on_gpu,
+        &mut body,
+        &mut gpu,
+        cpu_w,
+        "contacts inside faces",
+    );
     assert!(gpu.wait_seconds > 0.0 && gpu.compute_seconds >= gpu.wait_seconds);
     // The device's timestamps: every build timed, the forward solves took
     // time, and the device's busy span lies inside the host's wait.
