@@ -96,15 +96,17 @@ pub struct ContactSettings {
     /// triangle near a tool tests 13 barycentric points
     /// ([`super::detect::FACE_SAMPLES`]), refines the deepest by a pattern
     /// search, and where that point is inside the alarm band and deeper than
-    /// all three corners by [`Self::penetration_tolerance`] makes it a contact
-    /// on the triangle's three nodes, weighted by its barycentric
-    /// coordinates. A flat tool face against a face adds no row (the vertices
-    /// carry it). Refinement passes keep the pass before's face contacts, and
-    /// the penetration they end within covers these points too. Off by
-    /// default: it costs detection time and rows, and the cataract scene's
-    /// scripted delivery, whose vectis held the lens partly by its rim's bite
-    /// into the lens, then loses the lens more often (see the README,
-    /// "Tool contacts inside faces").
+    /// all three corners by [`Self::penetration_tolerance`] makes it a
+    /// frictionless contact on the triangle's three nodes, weighted by its
+    /// barycentric coordinates (friction stays with the vertex contacts). A
+    /// flat tool face against a face adds no row (the vertices carry it).
+    /// Refinement passes keep the pass before's face contacts, and the
+    /// penetration they end within covers these points too. Off by default:
+    /// in the cataract jam it costs about 40 % of the steps per second (the
+    /// face search, more passes, harder LCPs), and the scene's scripted
+    /// delivery, tuned while the vectis's rim bit into the lens, then loses
+    /// the lens in 2 of 26 runs (see the README, "Tool contacts inside
+    /// faces").
     pub tool_faces: bool,
 }
 

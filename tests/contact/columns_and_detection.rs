@@ -463,6 +463,8 @@ fn a_tool_between_vertices_is_held_out_of_the_face() {
                 c.a.nodes
             );
             assert!((c.a.weights.iter().sum::<f64>() - 1.0).abs() < 1e-12);
+            // Frictionless: friction stays with the vertex contacts.
+            assert_eq!(c.mu, 0.0);
         }
         let depth = deepest_in_faces(&on);
         assert!(depth <= 2.0 * tol, "step {step}: {depth:e} m into the face");
