@@ -44,7 +44,8 @@
 //!
 //! In the window: the lens is coloured by stiffness (red nucleus), the eye is
 //! translucent; the panel switches effects, preconditioner, refresh policy,
-//! compliance and where `W` is built (CPU or GPU), and charts FPS, CG
+//! compliance, tool contacts inside faces and where `W` is built (CPU or
+//! GPU), and charts FPS, CG
 //! iterations, contacts and time per phase.
 //! Keys: `Space` toggles the scripted path; `W/S` move the vectis toward/away
 //! from the incision, `A/D` sideways, `Q/E` across the slit; drag with the right
@@ -1079,6 +1080,10 @@ mod viewer {
                 ui.checkbox(
                     &mut config.contact.predict,
                     "detect at predicted positions (fewer passes)",
+                );
+                ui.checkbox(
+                    &mut config.contact.tool_faces,
+                    "tool contacts inside faces (slower)",
                 );
                 // `Factorized` bodies' W in the compute shader (`GpuMode::On`).
                 let mut on_gpu = config.gpu != GpuMode::Off;
