@@ -103,8 +103,8 @@ pub struct DetectParams {
 /// The barycentric points of a surface triangle that face detection
 /// ([`DetectParams::tool_faces`]) starts from: the centroid and the points of
 /// the grid of step ¼ other than the corners, three inside and three on each
-/// edge (an edge's points tested by one of its two triangles, see
-/// [`tool_faces`]).
+/// edge (an edge's points tested by one of its two triangles: the one that
+/// runs the edge from its lower node to its higher).
 pub const FACE_SAMPLES: [[f64; 3]; 13] = [
     [1.0 / 3.0, 1.0 / 3.0, 1.0 / 3.0],
     [0.5, 0.25, 0.25],
