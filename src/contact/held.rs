@@ -173,9 +173,9 @@ mod tests {
         // under a +z plane; this pass the face's point is 2 µm under it and
         // its only contact of the tool turned to +x.
         let x = [
-            Vec3::new(0.0, 0.0, -2e-6),
-            Vec3::new(1e-3, 0.0, -2e-6),
-            Vec3::new(0.0, 1e-3, -2e-6),
+            Vec3::new(0.0, 0.0, -4e-6),
+            Vec3::new(1e-3, 0.0, 0.0),
+            Vec3::new(0.0, 1e-3, 0.0),
             Vec3::new(5.0, 5.0, 5.0),
         ];
         let face = |normal: Vec3, gap: f64| Contact {
@@ -191,7 +191,8 @@ mod tests {
         hold_planes(&held, &mut contacts, |b| (b == 0).then_some(&x[..]), 1e-4);
         assert_eq!(contacts.len(), 2);
         assert_eq!(contacts[1].a, held[0].a);
-        // Measured from the point (0.25, 0.25, −2) µm·mm, not from node 0.
+        // Measured from the face's point, (0.25 mm, 0.25 mm, −2 µm), not
+        // from node 0 (4 µm under the plane).
         assert!(
             (contacts[1].gap + 2e-6).abs() < 1e-15,
             "{}",
