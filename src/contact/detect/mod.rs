@@ -642,6 +642,60 @@ mod tests {
     }
 
     #[test]
+    fn a_refinement_pass_keeps_the_last_passs_face_contacts() {
+        // A 0.3 mm sphere 50 µm into a 1 mm triangle at (0.3, 0.2) mm.
+        let pose = Pose::translation(0.3e-3, 0.2e-3, 0.25e-3);
+        let tools = [RigidTool::new(ToolShape::Sphere { radius: 0.3e-3 }, pose).unwrap()];
+        let mut st = DetectBody::new(vec![[0, 1, 2]]);
+        st.x = vec![
+            Vec3::zeros(),
+            Vec3::new(1e-3, 0.0, 0.0),
+            Vec3::new(0.0, 1e-3, 0.0),
+        ];
+        let face = |weights: [f64; 3]| Contact {
+            a: ContactSide {
+                body: 0,
+                nodes: [0, 1, 2],
+                weights,
+            },
+            other: ContactOther::Tool(0),
+            normal: Vec3::x(),
+            tangents: tangent_basis(&Vec3::x()),
+            gap: 1.0,
+            slip: [0.0; 2],
+            mu: 0.0,
+            point: Vec3::zeros(),
+            force: Vec3::zeros(),
+        };
+        // Kept: the point under the sphere, one 0.27 mm from it (outside
+        // the alarm distance), and one this pass detected again.
+        let kept = [
+            face([0.5, 0.3, 0.2]),
+            face([0.1, 0.8, 0.1]),
+            face([0.4, 0.3, 0.3]),
+        ];
+        let mut out = vec![face([0.4, 0.3, 0.3])];
+        keep_faces(&kept, &[st], &tools, 1e-4, &mut out);
+        assert_eq!(out.len(), 2, "{out:?}");
+        let c = &out[1];
+        assert_eq!(c.a, kept[0].a);
+        // Measured again where the face is now.
+        assert!((c.gap + 50e-6).abs() < 1e-12, "{}", c.gap);
+        assert!((c.normal + Vec3::z()).norm() < 1e-9, "{}", c.normal);
+        assert!(
+            is_tool_face(c)
+                && !is_tool_face(&Contact {
+                    a: ContactSide {
+                        body: 0,
+                        nodes: [0, 0, 0],
+                        weights: [1.0, 0.0, 0.0],
+                    },
+                    ..*c
+                })
+        );
+    }
+
+    #[test]
     fn the_pattern_search_finds_the_deepest_point_of_a_face() {
         // A sphere of 0.3 mm whose centre is 0.25 mm above the point
         // (0.3, 0.2) mm of a 1 mm triangle in the plane z = 0: 50 µm deep there.
