@@ -324,6 +324,11 @@ fn corner_contact(
     Some((*c, solver.report().max_penetration))
 }
 
+/// The harness's test of a tool between a surface's vertices.
+#[path = "../examples/common/faces.rs"]
+#[allow(dead_code)]
+mod faces;
+
 /// Tests: node columns, the LCP, detection and prediction.
 #[path = "contact/columns_and_detection.rs"]
 mod columns_and_detection;

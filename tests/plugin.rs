@@ -478,7 +478,7 @@ fn headless_trace_and_the_eyes_own_preconditioner() {
 #[test]
 fn a_tool_between_a_triangles_vertices_is_found() {
     use bevy_soft_tissue::contact::RigidTool;
-    use common::headless::tool_in_faces;
+    use common::faces::{FACE_GRID, tool_in_faces};
     let x = [v3(0.0, 0.0, 0.0), v3(1e-3, 0.0, 0.0), v3(0.0, 1e-3, 0.0)];
     let centroid = (x[0] + x[1] + x[2]) / 3.0;
     let (r, tolerance) = (0.2e-3, 1e-6);
@@ -487,7 +487,7 @@ fn a_tool_between_a_triangles_vertices_is_found() {
         let tool = RigidTool::new(ToolShape::Sphere { radius: r }, pose).unwrap();
         // The corners are outside the sphere: a vertex test finds nothing.
         assert!(x.iter().all(|p| tool.proximity(p, 0.0).is_none()));
-        let (found, n) = tool_in_faces(&tool, &[[0, 1, 2]], &x, tolerance);
+        let (found, n) = tool_in_faces(&tool, &[[0, 1, 2]], &x, tolerance, FACE_GRID);
         assert!(
             (found - depth).abs() < 1e-9,
             "height {height}: {found} m, expected {depth}"

@@ -4,6 +4,8 @@
 use std::io::Write;
 use std::time::Duration;
 
+use super::faces::{FACE_GRID, tool_in_faces};
+
 use bevy::prelude::*;
 use bevy_soft_tissue::SoftTissuePlugins;
 use bevy_soft_tissue::body::BodySettings;
@@ -187,61 +189,6 @@ pub struct Recording {
     pub dir: std::path::PathBuf,
     /// Steps with fewer contacts are not written.
     pub min_contacts: usize,
-}
-
-/// How finely [`tool_in_faces`] tests each lens surface triangle: the
-/// barycentric grid of step `1 / FACE_GRID` (91 points with the corners), a
-/// finer set than the contacts' own face samples
-/// (`bevy_soft_tissue::contact::detect::FACE_SAMPLES`, with
-/// `ContactSettings::tool_faces`), so that the check does not only confirm
-/// the points the contacts hold out.
-pub const FACE_GRID: usize = 12;
-
-/// The deepest point of the [`FACE_GRID`] inside `tool` over the surface
-/// triangles `triangles` of positions `x` whose bounds meet the tool's (0
-/// where none is inside), and how many triangles reach deeper than
-/// `tolerance`. A grid point is queried only where its corners' distances
-/// to the tool allow it inside (a signed distance changes no faster than
-/// the distance moved).
-pub fn tool_in_faces(
-    tool: &bevy_soft_tissue::contact::RigidTool,
-    triangles: &[[usize; 3]],
-    x: &[bevy_soft_tissue::math::Vec3],
-    tolerance: f64,
-) -> (f64, usize) {
-    let (lo, hi) = tool.aabb(0.0);
-    // A point inside the tool is nearer its surface than the box's diagonal.
-    let reach = (hi - lo).norm();
-    let distance =
-        |q: &bevy_soft_tissue::math::Vec3| tool.proximity(q, reach).map_or(reach, |pr| pr.distance);
-    let (mut deepest, mut count) = (0.0f64, 0);
-    for t in triangles {
-        let p = t.map(|i| x[i]);
-        let (tlo, thi) = (p[0].inf(&p[1]).inf(&p[2]), p[0].sup(&p[1]).sup(&p[2]));
-        if (0..3).any(|k| thi[k] < lo[k] || tlo[k] > hi[k]) {
-            continue;
-        }
-        let d = p.map(|c| distance(&c));
-        let mut tri = 0.0f64;
-        for i in 0..=FACE_GRID {
-            for j in 0..=FACE_GRID - i {
-                if i == FACE_GRID || j == FACE_GRID || i + j == 0 {
-                    continue; // a corner: the vertex contacts' own
-                }
-                let (a, b) = (i as f64 / FACE_GRID as f64, j as f64 / FACE_GRID as f64);
-                let q = p[0] + (p[1] - p[0]) * a + (p[2] - p[0]) * b;
-                let bound = (0..3)
-                    .map(|c| d[c] - (q - p[c]).norm())
-                    .fold(f64::NEG_INFINITY, f64::max);
-                if bound < tri {
-                    tri = tri.min(distance(&q));
-                }
-            }
-        }
-        deepest = deepest.min(tri);
-        count += usize::from(-tri > tolerance);
-    }
-    (-deepest, count)
 }
 
 /// What a headless run does beyond stepping and measuring.
@@ -505,7 +452,7 @@ pub fn run_headless_with(
             let vectis = tool_q.iter(world).next().map(|t| &t.0);
             // The last step's figures are the run's end figures.
             let (in_faces, over) = vectis.map_or((0.0, 0), |t| {
-                tool_in_faces(t, &lens_triangles, b.positions(), tolerance)
+                tool_in_faces(t, &lens_triangles, b.positions(), tolerance, FACE_GRID)
             });
             vectis_in_faces = (vectis_in_faces.0.max(in_faces), in_faces, over);
             if let Some((path, f)) = trace.as_mut() {

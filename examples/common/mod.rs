@@ -5,6 +5,7 @@
 pub mod args;
 pub mod bench;
 pub mod display;
+pub mod faces;
 #[cfg(feature = "bevy")]
 pub mod headless;
 pub mod soak;

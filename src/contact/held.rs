@@ -64,16 +64,7 @@ pub(super) fn hold_planes<'a, F>(
             continue;
         }
         // The side's barycentric point where its body is now.
-        let at = |side: &ContactSide| {
-            positions(side.body).and_then(|x| {
-                side.nodes
-                    .iter()
-                    .zip(side.weights)
-                    .filter(|&(_, w)| w != 0.0)
-                    .map(|(&n, w)| x.get(n as usize).map(|x| x * w))
-                    .sum::<Option<Vec3>>()
-            })
-        };
+        let at = |side: &ContactSide| positions(side.body).and_then(|x| side.point(x));
         let Some(p) = at(&held.a) else {
             continue;
         };

@@ -29,6 +29,19 @@ pub struct ContactSide {
     pub weights: [f64; 3],
 }
 
+impl ContactSide {
+    /// The side's point among positions `x` of its body: its nodes weighted
+    /// by their barycentric weights (`None` where a node is out of range).
+    pub fn point(&self, x: &[Vec3]) -> Option<Vec3> {
+        self.nodes
+            .iter()
+            .zip(self.weights)
+            .filter(|&(_, w)| w != 0.0)
+            .map(|(&n, w)| x.get(n as usize).map(|p| p * w))
+            .sum()
+    }
+}
+
 /// What the other side of a contact is.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum ContactOther {

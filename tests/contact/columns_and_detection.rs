@@ -397,24 +397,8 @@ fn block_under(tool: RigidTool, faces: bool) -> Scene {
 /// barycentric grid of step 1/48, corners left out (metres, 0 if none).
 fn deepest_in_faces(scene: &Scene) -> f64 {
     let (body, tool) = (&scene.bodies[0], &scene.tools[0]);
-    let x = body.positions();
-    let mut deepest = 0.0f64;
-    for t in body.surface().volume_triangles() {
-        let p = t.map(|i| x[i]);
-        for i in 0..=48 {
-            for j in 0..=48 - i {
-                if i == 48 || j == 48 || i + j == 0 {
-                    continue;
-                }
-                let (a, b) = (i as f64 / 48.0, j as f64 / 48.0);
-                let q = p[0] + (p[1] - p[0]) * a + (p[2] - p[0]) * b;
-                if let Some(pr) = tool.proximity(&q, 1e-3) {
-                    deepest = deepest.min(pr.distance);
-                }
-            }
-        }
-    }
-    -deepest
+    let triangles: Vec<[usize; 3]> = body.surface().volume_triangles().collect();
+    crate::faces::tool_in_faces(tool, &triangles, body.positions(), 0.0, 48).0
 }
 
 #[test]

@@ -156,6 +156,7 @@ pub fn detect<B: Bodies + ?Sized, T: Tools + ?Sized>(
             if !boxes_overlap(&st.aabb, &tb, 0.0) {
                 continue;
             }
+            let inner = tool.inner_radius();
             if params.tool_faces {
                 // Outside the grown bounds a vertex is farther than their margin.
                 st.corner.clear();
@@ -167,7 +168,7 @@ pub fn detect<B: Bodies + ?Sized, T: Tools + ?Sized>(
                     continue;
                 }
                 let band = margin + st.extra[v];
-                let reach = band + tool.inner_radius();
+                let reach = band + inner;
                 if fixed[v] != NodeConstraint::Free {
                     if params.tool_faces {
                         st.corner[v] = tool.proximity(&p, reach).map_or(reach, |q| q.distance);
@@ -210,6 +211,7 @@ pub fn detect<B: Bodies + ?Sized, T: Tools + ?Sized>(
                     tool: ti,
                     margin,
                     deeper: params.face_deeper,
+                    inner,
                 };
                 pairs += tool_faces(st, body, tools.tool(ti), &tb, face, out);
             }
@@ -247,6 +249,8 @@ struct FaceDetect {
     tool: usize,
     margin: f64,
     deeper: f64,
+    /// The tool's [`RigidTool::inner_radius`].
+    inner: f64,
 }
 
 /// Contacts of `tool` inside the surface triangles of body `f.body`
@@ -292,9 +296,11 @@ fn tool_faces(
         let band = f.margin + tri.iter().map(|&n| st.extra[n]).fold(0.0, f64::max);
         // Deep enough to count: below the band and below every corner.
         let limit = band.min(shallowest - f.deeper);
+        // Deep enough to find the surface from anywhere inside the tool.
+        let reach = limit.max(0.0) + f.inner;
         let mut best: Option<(f64, [f64; 3], ToolProximity)> = None;
         for w in FACE_SAMPLES.iter().filter(|w| owns(tri, w)) {
-            let q = p[0] * w[0] + p[1] * w[1] + p[2] * w[2];
+            let q = at(&p, w);
             let bound = (0..3)
                 .map(|c| d[c] - (q - p[c]).norm())
                 .fold(f64::NEG_INFINITY, f64::max);
@@ -302,7 +308,6 @@ fn tool_faces(
                 continue;
             }
             pairs += 1;
-            let reach = limit.max(0.0) + tool.inner_radius();
             let Some(prox) = tool.proximity(&q, reach) else {
                 continue;
             };
@@ -313,7 +318,6 @@ fn tool_faces(
         let Some((_, w, prox)) = best else {
             continue;
         };
-        let reach = limit.max(0.0) + tool.inner_radius();
         let (w, prox) = deepest_near(&p, w, prox, tool, reach, &mut pairs);
         // On an edge: the edge's, as above; at a corner: the vertex's.
         if !owns(tri, &w) {
@@ -336,6 +340,11 @@ fn tool_faces(
         });
     }
     pairs
+}
+
+/// The point of weights `w` on the triangle of corners `p`.
+fn at(p: &[Vec3; 3], w: &[f64; 3]) -> Vec3 {
+    p[0] * w[0] + p[1] * w[1] + p[2] * w[2]
 }
 
 /// Refinement levels of [`deepest_near`]: the step halves from an eighth
@@ -371,8 +380,7 @@ fn deepest_near(
                     v[from] = 0.0;
                 }
                 *pairs += 1;
-                let q = p[0] * v[0] + p[1] * v[1] + p[2] * v[2];
-                if let Some(near) = tool.proximity(&q, reach)
+                if let Some(near) = tool.proximity(&at(p, &v), reach)
                     && near.distance < prox.distance
                 {
                     (w, prox, moved) = (v, near, true);
@@ -423,16 +431,7 @@ pub fn keep_faces<T: Tools + ?Sized>(
         {
             continue;
         }
-        let Some(x) = state.get(c.a.body).map(|s| &s.x) else {
-            continue;
-        };
-        let Some(q) =
-            c.a.nodes
-                .iter()
-                .zip(c.a.weights)
-                .map(|(&n, w)| x.get(n as usize).map(|p| p * w))
-                .sum::<Option<Vec3>>()
-        else {
+        let Some(q) = state.get(c.a.body).and_then(|s| c.a.point(&s.x)) else {
             continue;
         };
         let tool = tools.tool(ti);
@@ -712,7 +711,7 @@ mod tests {
         let (w, prox) = deepest_near(&p, w, start, &tool, 1.0, &mut pairs);
         assert!(prox.distance < start.distance);
         assert!((prox.distance + 50e-6).abs() < 5e-7, "{}", prox.distance);
-        let q = p[0] * w[0] + p[1] * w[1] + p[2] * w[2];
+        let q = at(&p, &w);
         assert!((q - Vec3::new(0.3e-3, 0.2e-3, 0.0)).norm() < 1e-5, "{q}");
         assert!(pairs > 0);
     }
