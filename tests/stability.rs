@@ -1,9 +1,10 @@
 //! The hard-case stability suite: stiffness contrast up to 10⁶ in a small,
 //! free stiff core, a graded mesh (element sizes 100:1), time steps from
 //! 1/240 to 0.04 s, ν = 0.49, a crushed start with inverted elements, a fast
-//! tool impact, two bodies squeezed together, and the stiff-core lens pressed
-//! by a tool with friction. Default (`Async`) preconditioner unless a case
-//! says otherwise.
+//! tool impact, two bodies squeezed together, the stiff-core lens pressed
+//! by a tool with friction, and a rod thinner than the lens's triangles
+//! drawn across it with face contacts (`ContactSettings::tool_faces`).
+//! Default (`Async`) preconditioner unless a case says otherwise.
 //!
 //! Every step of every case is checked ([`Monitor::check`]):
 //! - no NaN or infinity in positions and velocities;
@@ -696,4 +697,74 @@ fn short_soak_of_the_cataract_scene() {
     println!("{s:?}");
     assert_eq!(s.steps, 1500);
     assert!(!s.failed(), "{s:?}");
+}
+
+/// A rod thinner than the lens's surface triangles (0.3 mm across them
+/// 1.5 mm wide), pressed 0.6 mm into the top of the stiff-core lens and then
+/// drawn 1 mm sideways, with face contacts
+/// (`ContactSettings::tool_faces`). Beyond the monitor's checks, every step
+/// ends with the lens's faces out of the rod to twice the tolerance, on a
+/// grid of 48 points a triangle edge. Without face contacts the rod sinks
+/// between the vertices by more than half its radius.
+#[test]
+fn thin_rod_drawn_across_the_lens_with_face_contacts() {
+    let r = 0.15e-3;
+    let top = LENS_RADII[2] + r + 1e-4;
+    let rod = |p: Vec3| {
+        Isometry3::from_parts(
+            Translation3::from(p),
+            UnitQuaternion::from_axis_angle(&Vec3::z_axis(), 0.3),
+        )
+    };
+    let run = |v: Variant, on: bool| {
+        let mut c = v.contact();
+        c.tool_faces = on;
+        let tol = c.penetration_tolerance;
+        let mut scene = Scene::new(c).unwrap();
+        let lens = cored_lens(6, 5.0, 0.45, v.body(BodySettings::default()));
+        let e_ref = energy_scale(&lens);
+        let triangles: Vec<[usize; 3]> = lens.surface().volume_triangles().collect();
+        scene.add_body(lens);
+        scene.add_tool(plate(-LENS_RADII[2], 0.5));
+        let shape = ToolShape::Capsule {
+            half_height: 3e-3,
+            radius: r,
+        };
+        scene.add_tool(RigidTool::new(shape, rod(v3(0.0, 0.0, top))).unwrap());
+        let name = format!("thin rod, faces {on}, {v:?}");
+        let mut m = Monitor::new(&name, &scene, Vec3::zeros(), e_ref);
+        let h = 1.0 / 60.0;
+        let mut deepest: f64 = 0.0;
+        for s in 0..60 {
+            // Down 0.6 mm over 0.5 s, then 1 mm sideways over 0.5 s.
+            let t = s as f64 * h;
+            let down = (t / 0.5).min(1.0) * 0.6e-3;
+            let side = ((t - 0.5) / 0.5).clamp(0.0, 1.0) * 1e-3;
+            scene.tools[1]
+                .set_pose(rod(v3(side, 0.0, top - down)))
+                .unwrap();
+            m.step(&mut scene, h);
+            if on && s == 29 {
+                assert!(
+                    scene.tools[1].reaction().0.z > 0.0,
+                    "{name}: the lens pushes the rod up"
+                );
+            }
+            let x = scene.bodies[0].positions();
+            let depth = common::faces::tool_in_faces(&scene.tools[1], &triangles, x, 0.0, 48).0;
+            assert!(
+                !on || depth <= 2.0 * tol,
+                "{name}, step {s}: the rod {depth:.3e} m inside a face"
+            );
+            deepest = deepest.max(depth);
+        }
+        m.report();
+        println!("{name}: the rod at most {deepest:.2e} m inside a face");
+        deepest
+    };
+    for v in VARIANTS {
+        run(v, true);
+    }
+    let sunk = run(Variant::Default, false);
+    assert!(sunk > 0.5 * r, "without face contacts: {sunk:.3e} m");
 }
