@@ -10,7 +10,7 @@ use std::sync::Arc;
 
 use nalgebra::{Isometry3, Point3, UnitQuaternion};
 use parry3d_f64::math::Vector as PVec;
-use parry3d_f64::query::{PointQuery, Ray};
+use parry3d_f64::query::PointQuery;
 use parry3d_f64::shape::{Shape, SharedShape, TriMeshFlags};
 
 use crate::error::{Result, SoftTissueError};
@@ -347,23 +347,6 @@ impl RigidTool {
         })
     }
 
-    /// How far the world point `p`, inside the tool, must move along the unit
-    /// direction `dir` to leave it (a ray cast from `p` to the shape's
-    /// boundary), or `None` where the ray finds no boundary within
-    /// `max_distance` (or none at all: an open mesh).
-    pub(crate) fn exit_along(&self, p: &Vec3, dir: &Vec3, max_distance: f64) -> Option<f64> {
-        let local = self.pose.inverse_transform_point(&Point3::from(*p)).coords;
-        let d = self.pose.rotation.inverse() * dir;
-        let ray = Ray::new(to_p(&local), to_p(&d));
-        // Cast over the whole shape and cut afterwards: a box cast with a
-        // shorter reach answers the reach itself, not `None`.
-        let b = self.parry.compute_local_aabb();
-        let across = (from_p(b.maxs) - from_p(b.mins)).norm() + (local - from_p(b.center())).norm();
-        self.parry
-            .cast_local_ray(&ray, across, false)
-            .filter(|&t| t.is_finite() && t <= max_distance)
-    }
-
     /// Reaction force and torque (about the tool origin) of the last contact solve,
     /// exerted by the tissue on the tool.
     pub fn reaction(&self) -> (Vec3, Vec3) {
@@ -373,61 +356,5 @@ impl RigidTool {
     pub(crate) fn set_reaction(&mut self, force: Vec3, torque: Vec3) {
         self.reaction_force = force;
         self.reaction_torque = torque;
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn a_ray_from_inside_leaves_each_shape_at_its_boundary() {
-        // A unit cube as a box and as a closed mesh, turned and moved; a
-        // sphere and a capsule (along y) of radius 0.5. From the local point
-        // (0, 0, 0.3): 0.2 to the boundary up, 0.8 down.
-        let c = [-0.5, 0.5];
-        let vertices: Vec<Vec3> = (0..8)
-            .map(|i| Vec3::new(c[i & 1], c[(i >> 1) & 1], c[(i >> 2) & 1]))
-            .collect();
-        let indices = vec![
-            [0, 2, 1],
-            [1, 2, 3],
-            [4, 5, 6],
-            [5, 7, 6],
-            [0, 1, 4],
-            [1, 5, 4],
-            [2, 6, 3],
-            [3, 6, 7],
-            [0, 4, 2],
-            [2, 4, 6],
-            [1, 3, 5],
-            [3, 7, 5],
-        ];
-        let pose = Pose::from_parts(
-            nalgebra::Translation3::new(1.0, -2.0, 0.5),
-            UnitQuaternion::from_euler_angles(0.3, -0.2, 1.1),
-        );
-        let shapes = [
-            ToolShape::Box {
-                half_extents: Vec3::repeat(0.5),
-            },
-            ToolShape::TriMesh { vertices, indices },
-            ToolShape::Sphere { radius: 0.5 },
-            ToolShape::Capsule {
-                half_height: 1.0,
-                radius: 0.5,
-            },
-        ];
-        for shape in shapes {
-            let tool = RigidTool::new(shape.clone(), pose).unwrap();
-            let p = pose * Point3::new(0.0, 0.0, 0.3);
-            let up = pose.rotation * Vec3::z();
-            let t_up = tool.exit_along(&p.coords, &up, 10.0).unwrap();
-            let t_down = tool.exit_along(&p.coords, &-up, 10.0).unwrap();
-            assert!((t_up - 0.2).abs() < 1e-9, "{shape:?}: {t_up}");
-            assert!((t_down - 0.8).abs() < 1e-9, "{shape:?}: {t_down}");
-            // Not within a shorter reach.
-            assert_eq!(tool.exit_along(&p.coords, &-up, 0.5), None, "{shape:?}");
-        }
     }
 }

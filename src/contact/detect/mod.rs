@@ -253,8 +253,7 @@ struct FaceDetect {
 /// deeper than every corner by [`DetectParams::face_deeper`] and not a
 /// corner (the vertex's contact). A point on an edge may be found by both
 /// of the edge's triangles (a rod across the edge is deepest there from
-/// both sides); the deeper is kept. Inside the tool the contact pushes the
-/// face along its inward normal ([`face_push`]).
+/// both sides); the deeper is kept.
 ///
 /// Face contacts are frictionless: they hold the faces out of the tool, and
 /// friction stays with the vertex contacts. A face contact's tangent rows lie
@@ -327,7 +326,6 @@ fn tool_faces(
         if prox.distance >= limit || w.iter().filter(|&&c| c == 0.0).count() > 1 {
             continue;
         }
-        let prox = face_push(tool, &at(&p, &w), &p, prox);
         out.push(Contact {
             a: ContactSide {
                 body: f.body,
@@ -382,39 +380,6 @@ fn keep_deepest_on_edges(faces: &mut [Contact]) {
                 break;
             }
         }
-    }
-}
-
-/// The push of a face contact at the point `q` of the triangle of corners
-/// `p` (counter-clockwise from outside), whose closest point on the tool is
-/// `prox`. Outside the tool, `prox` itself. Inside, along the face's inward
-/// normal, the side its tissue is on, by the distance a ray along it runs
-/// to leave the tool (the gap is minus that). The closest point's normal is
-/// the tool's, right for a vertex inside the tool; but a face is pressed by
-/// a tool's edge or corner, and past the middle of a thin part of the tool
-/// that normal points back out of the tissue, pulling the face through the
-/// tool, and near a rod's axis it turns with the last micrometre of `q`'s
-/// position. Traced in the cataract scene (`lag3`, 12 893 face contacts
-/// inside the vectis): 97.6 % had a closest-point normal within 60° of the
-/// face's inward normal, 279 one more nearly along the face, 35 one
-/// pointing out of the tissue. `prox` where the ray runs farther than the
-/// tool is thick (twice [`RigidTool::inner_radius`]: a face edge-on to a
-/// blade; 3 of the 14 246 pushes traced), where the triangle is degenerate,
-/// or where the ray finds no way out (an open mesh).
-fn face_push(tool: &RigidTool, q: &Vec3, p: &[Vec3; 3], prox: ToolProximity) -> ToolProximity {
-    if prox.distance >= 0.0 {
-        return prox;
-    }
-    let Some(inward) = (p[2] - p[0]).cross(&(p[1] - p[0])).try_normalize(1e-300) else {
-        return prox;
-    };
-    match tool.exit_along(q, &inward, 2.0 * tool.inner_radius()) {
-        Some(t) => ToolProximity {
-            distance: -t,
-            normal: inward,
-            point: q + inward * t,
-        },
-        None => prox,
     }
 }
 
@@ -520,8 +485,6 @@ pub fn keep_faces<T: Tools + ?Sized>(
         if prox.distance >= margin {
             continue;
         }
-        let corners = c.a.nodes.map(|n| state[c.a.body].x[n as usize]);
-        let prox = face_push(tool, &q, &corners, prox);
         out.push(Contact {
             normal: prox.normal,
             tangents: tangent_basis(&prox.normal),
@@ -755,43 +718,6 @@ mod tests {
         ];
         keep_deepest_on_edges(&mut tie);
         assert_eq!(tie.iter().filter(|c| c.gap.is_nan()).count(), 1);
-    }
-
-    #[test]
-    fn a_face_through_a_rods_middle_is_pushed_along_its_inward_normal() {
-        // A rod (radius 0.1 mm, along y) whose axis lies 5 µm below the
-        // triangle in z = 0 (outward normal +z): the closest surface point
-        // of the face's point over the axis is straight up, out of the
-        // tissue. The push goes down, through the rod: 0.105 mm.
-        let p = [
-            Vec3::new(-1e-3, -1e-3, 0.0),
-            Vec3::new(1e-3, -1e-3, 0.0),
-            Vec3::new(0.0, 1e-3, 0.0),
-        ];
-        let rod = |z: f64| {
-            RigidTool::new(
-                ToolShape::Capsule {
-                    half_height: 2e-3,
-                    radius: 1e-4,
-                },
-                Pose::translation(0.0, 0.0, z),
-            )
-            .unwrap()
-        };
-        let tool = rod(-5e-6);
-        let q = Vec3::zeros();
-        let prox = tool.proximity(&q, 1.0).unwrap();
-        assert!(prox.normal.z > 0.99, "{}", prox.normal);
-        let push = face_push(&tool, &q, &p, prox);
-        assert!((push.normal + Vec3::z()).norm() < 1e-12, "{}", push.normal);
-        assert!((push.distance + 1.05e-4).abs() < 1e-12, "{}", push.distance);
-        assert!((push.point - Vec3::new(0.0, 0.0, -1.05e-4)).norm() < 1e-12);
-        // Outside the tool the closest point is kept.
-        let tool = rod(1.5e-4);
-        let prox = tool.proximity(&q, 1.0).unwrap();
-        let push = face_push(&tool, &q, &p, prox);
-        assert_eq!(push.distance, prox.distance);
-        assert_eq!(push.normal, prox.normal);
     }
 
     #[test]
