@@ -94,21 +94,21 @@ pub struct ContactSettings {
     /// cataract scene the vectis went up to 0.39 mm into the lens's faces,
     /// more than the lens's smallest edges. With this on, each surface
     /// triangle near a tool tests 13 barycentric points
-    /// ([`super::detect::FACE_SAMPLES`]), refines the deepest by a pattern
-    /// search, and where that point is inside the alarm band and deeper than
-    /// all three corners by [`Self::penetration_tolerance`] makes it a
-    /// frictionless contact on the triangle's three nodes, weighted by its
-    /// barycentric coordinates (friction stays with the vertex contacts). A
-    /// flat tool face against a face adds no row (the vertices carry it).
-    /// Refinement passes keep the pass before's face contacts, and the
-    /// penetration they end within covers these points too. Off by default:
-    /// in the cataract jam it costs about 40 % of the steps per second (the
-    /// face search, more passes, harder LCPs), and the scene's scripted
-    /// delivery, tuned while the vectis's rim bit into the lens, then loses
-    /// the lens in 2 of 26 runs; and a thin rod pressed between a lens's
-    /// vertices broke the stability suite's energy bound even with the exact
-    /// solver, with faces held out to 17 µm, not to the tolerance (see the
-    /// README, "Tool contacts inside faces"). Experimental.
+    /// ([`super::detect::FACE_SAMPLES`]); from the deepest that can lie
+    /// near a point deep enough (a tool thinner than the samples' spacing
+    /// passes between them) a pattern search finds the deepest point, and
+    /// where that point is inside the alarm band and deeper than all three
+    /// corners by [`Self::penetration_tolerance`] it becomes a frictionless
+    /// contact on the triangle's three nodes, weighted by its barycentric
+    /// coordinates (friction stays with the vertex contacts). A flat tool
+    /// face against a face adds no row (the vertices carry it). Refinement
+    /// passes keep the pass before's face contacts, and the penetration
+    /// they end within covers these points too. The stability suite's thin
+    /// rod drawn across the lens keeps its faces out to twice the tolerance
+    /// and the energy bound. Off by default: in the cataract jam it costs
+    /// about two thirds of the steps per second (the face search, more
+    /// passes, harder LCPs, 4–16 first-pass solves a run at the sweep cap;
+    /// see the README, "Tool contacts inside faces"). Experimental.
     pub tool_faces: bool,
 }
 
