@@ -6,7 +6,7 @@
 //! drawn across it with face contacts (`ContactSettings::tool_faces`).
 //! Default (`Async`) preconditioner unless a case says otherwise.
 //!
-//! Every step of every case is checked ([`Monitor::check`]):
+//! Every step of every case is checked ([`Monitor::step`]):
 //! - no NaN or infinity in positions and velocities;
 //! - the conjugate gradient converged (after a rescue, if one was needed);
 //! - the total energy (kinetic + elastic + gravity) does not rise from the
@@ -699,13 +699,14 @@ fn short_soak_of_the_cataract_scene() {
     assert!(!s.failed(), "{s:?}");
 }
 
-/// A rod thinner than the lens's surface triangles (0.3 mm across them
-/// 1.5 mm wide), pressed 0.6 mm into the top of the stiff-core lens and then
-/// drawn 1 mm sideways, with face contacts
-/// (`ContactSettings::tool_faces`). Beyond the monitor's checks, every step
-/// ends with the lens's faces out of the rod to twice the tolerance, on a
-/// grid of 48 points a triangle edge. Without face contacts the rod sinks
-/// between the vertices by more than half its radius.
+/// A rod far thinner than the lens's surface triangles (0.3 mm thick, the
+/// triangles about 1.5 mm across), pressed 0.6 mm into the top of the
+/// stiff-core lens and then drawn 1 mm sideways, with face contacts
+/// (`ContactSettings::tool_faces`). Beyond the [`Monitor`]'s checks, every
+/// step ends with the lens's faces out of the rod to twice the tolerance, on
+/// a grid of 48 points a triangle edge, and the lens pushes the rod up once
+/// it is pressed in. Without face contacts the rod sinks between the
+/// vertices by more than half its radius.
 #[test]
 fn thin_rod_drawn_across_the_lens_with_face_contacts() {
     let r = 0.15e-3;
