@@ -326,7 +326,7 @@ fn tool_faces(
         if prox.distance >= limit || w.iter().filter(|&&c| c == 0.0).count() > 1 {
             continue;
         }
-        out.push(Contact {
+        let face = Contact {
             a: ContactSide {
                 body: f.body,
                 nodes: [i as u32, j as u32, k as u32],
@@ -340,17 +340,9 @@ fn tool_faces(
             mu: 0.0,
             point: prox.point,
             force: Vec3::zeros(),
-        });
+        };
+        push_deepest_on_edge(out, start, face);
     }
-    keep_deepest_on_edges(&mut out[start..]);
-    let mut kept = start;
-    for i in start..out.len() {
-        if !out[i].gap.is_nan() {
-            out.swap(kept, i);
-            kept += 1;
-        }
-    }
-    out.truncate(kept);
     pairs
 }
 
@@ -362,25 +354,24 @@ fn edge_of(c: &Contact) -> Option<(u32, u32)> {
     Some((a.min(b), a.max(b)))
 }
 
-/// Marks (gap NaN) every face contact of `faces` on an edge that another of
-/// them lies on more deeply (the search of either triangle of an edge can
-/// end on it: a rod across the edge is deepest there from both sides).
-fn keep_deepest_on_edges(faces: &mut [Contact]) {
-    for i in 0..faces.len() {
-        let Some(e) = edge_of(&faces[i]) else {
-            continue;
-        };
-        for j in 0..faces.len() {
-            if j != i
-                && edge_of(&faces[j]) == Some(e)
-                && faces[j].gap <= faces[i].gap
-                && (faces[j].gap < faces[i].gap || j < i)
-            {
-                faces[i].gap = f64::NAN;
-                break;
+/// Appends the face contact `face` to `out`, whose face contacts of this
+/// body and tool begin at `start`, keeping one contact an edge: a point on
+/// an edge that one of them already has is left out where that one is as
+/// deep, and replaces it where deeper (the search of either triangle of an
+/// edge can end on it: a rod across the edge is deepest there from both
+/// sides).
+fn push_deepest_on_edge(out: &mut Vec<Contact>, start: usize, face: Contact) {
+    if let Some(e) = edge_of(&face) {
+        let on_edge = out[start..].iter().position(|c| edge_of(c) == Some(e));
+        match on_edge {
+            Some(m) if out[start + m].gap <= face.gap => return,
+            Some(m) => {
+                out.remove(start + m);
             }
+            None => {}
         }
     }
+    out.push(face);
 }
 
 /// The point of weights `w` on the triangle of corners `p`.
@@ -695,29 +686,26 @@ mod tests {
         // Triangles 0-1-2 and 3-2-1 share the edge 1–2; both searches end
         // on it, the second deeper. A point inside the first stays, as does
         // one on another edge.
-        let mut faces = [
+        let faces = [
             face_contact([0, 1, 2], [0.0, 0.4, 0.6], -3e-6),
             face_contact([0, 1, 2], [0.2, 0.3, 0.5], -4e-6),
             face_contact([3, 2, 1], [0.0, 0.5, 0.5], -5e-6),
             face_contact([3, 2, 1], [0.5, 0.0, 0.5], -1e-6),
         ];
-        keep_deepest_on_edges(&mut faces);
-        let kept: Vec<f64> = faces
-            .iter()
-            .map(|c| c.gap)
-            .filter(|g| !g.is_nan())
-            .collect();
+        let mut out = Vec::new();
+        for f in faces {
+            push_deepest_on_edge(&mut out, 0, f);
+        }
+        let kept: Vec<f64> = out.iter().map(|c| c.gap).collect();
         assert_eq!(kept, [-4e-6, -5e-6, -1e-6]);
         assert_eq!(edge_of(&faces[2]), Some((1, 2)));
         assert_eq!(edge_of(&faces[3]), Some((1, 3)));
         assert_eq!(edge_of(&faces[1]), None);
         // Two equally deep points of an edge: one is kept.
-        let mut tie = [
-            face_contact([0, 1, 2], [0.0, 0.5, 0.5], -2e-6),
-            face_contact([3, 2, 1], [0.0, 0.5, 0.5], -2e-6),
-        ];
-        keep_deepest_on_edges(&mut tie);
-        assert_eq!(tie.iter().filter(|c| c.gap.is_nan()).count(), 1);
+        let mut tie = Vec::new();
+        push_deepest_on_edge(&mut tie, 0, face_contact([0, 1, 2], [0.0, 0.5, 0.5], -2e-6));
+        push_deepest_on_edge(&mut tie, 0, face_contact([3, 2, 1], [0.0, 0.5, 0.5], -2e-6));
+        assert_eq!(tie.len(), 1);
     }
 
     #[test]
