@@ -88,6 +88,26 @@ use jacobian::Jacobian;
 use lcp::{ContactKey, ContactProblem, LcpScratch, OtherKey, WarmStart};
 use predict::Prediction;
 
+/// The relative shift of the diagonal of each tool face contact's row of `W`
+/// in a first pass ([`ContactSettings::tool_faces`]): its solve sees
+/// `W_ii (1 + FACE_ROW_SHIFT)`, so a face may stay in by up to
+/// `FACE_ROW_SHIFT · W_ii λ_i`, a small part of what its own force moves it;
+/// the refinement passes, unshifted, take out what is left beyond the
+/// penetration tolerance.
+///
+/// A face contact's row acts on its triangle's three nodes along nearly the
+/// normal of its corners' own contacts, so it is nearly a combination of
+/// their rows: in the first-pass problems of the cataract jam the pivots of
+/// the normal rows' block of `W` fell to 10⁻¹⁰–10⁻¹⁶ of their diagonal with
+/// the face rows, against 10⁻³ without them. The forces are then not unique,
+/// and the subspace LCP ran to its sweep cap in 9 of the 289 first passes
+/// of a delivery with more than 90 contacts (test
+/// `a_problem_with_face_contacts_solves_with_their_rows_shifted`); with the
+/// shift none did, and the 289 took 632 sweeps in all instead of 7 536. A
+/// shift of 10⁻¹ let the lens slip off the blade (see "Tool contacts inside
+/// faces" in the README).
+pub const FACE_ROW_SHIFT: f64 = 3e-3;
+
 /// The contact pipeline (see the module docs). Keep one per scene; it caches
 /// per-body data (BVHs, node columns, previous forces) between steps.
 #[derive(Debug, Default)]
@@ -132,6 +152,9 @@ pub struct ContactSolver {
     /// The last pass's tool contacts inside faces, which the next
     /// refinement pass keeps ([`detect::keep_faces`]).
     faces: Vec<Contact>,
+    /// A first pass's unshifted diagonal entries of the face rows of `w`
+    /// ([`FACE_ROW_SHIFT`]), put back after its solve.
+    face_diagonal: Vec<f64>,
     h: f64,
     /// First passes so far (the prediction's step count).
     steps: u64,
@@ -501,6 +524,10 @@ impl ContactSolver {
         // The start, if recording: the solve overwrites it, and whether the
         // problem is kept is known only after (a solve at its sweep limit).
         let lambda0 = self.record_from.map(|_| self.lambda.clone());
+        let shift = first && self.settings.tool_faces;
+        if shift {
+            self.shift_face_rows();
+        }
         let report = lcp::solve(
             &self.w,
             &self.jac.delta0,
@@ -522,6 +549,9 @@ impl ContactSolver {
                 lambda0,
             });
         }
+        if shift {
+            self.unshift_face_rows();
+        }
         if first {
             self.warm.clear();
         }
@@ -542,6 +572,33 @@ impl ContactSolver {
         self.report.lcp_capped += usize::from(report.capped);
         self.report.lcp_seconds += t0.elapsed().as_secs_f64();
         report
+    }
+
+    /// Multiplies the diagonal entry of each face contact's row of `w` by
+    /// `1 + FACE_ROW_SHIFT`, keeping the entries for
+    /// [`Self::unshift_face_rows`].
+    fn shift_face_rows(&mut self) {
+        let m = self.jac.m();
+        self.face_diagonal.clear();
+        for (c, &r) in self.contacts.iter().zip(&self.jac.rows) {
+            if detect::is_tool_face(c) {
+                self.face_diagonal.push(self.w[r * m + r]);
+                self.w[r * m + r] *= 1.0 + FACE_ROW_SHIFT;
+            }
+        }
+    }
+
+    /// Puts back the diagonal entries [`Self::shift_face_rows`] changed.
+    fn unshift_face_rows(&mut self) {
+        let m = self.jac.m();
+        let mut kept = self.face_diagonal.iter();
+        for (c, &r) in self.contacts.iter().zip(&self.jac.rows) {
+            if detect::is_tool_face(c)
+                && let Some(&d) = kept.next()
+            {
+                self.w[r * m + r] = d;
+            }
+        }
     }
 
     /// Phase 4: applies `Δx = h² A⁻¹ Hᵀ λ` to every body and sets the tool reactions.
