@@ -455,6 +455,126 @@ fn a_tool_between_vertices_is_held_out_of_the_face() {
     }
 }
 
+/// The 8 corners and 12 outward triangles of a box of half extents `half`
+/// at `pose`, appended to `vertices` and `indices`.
+fn push_box(pose: &Pose, half: Vec3, vertices: &mut Vec<Vec3>, indices: &mut Vec<[u32; 3]>) {
+    let base = vertices.len() as u32;
+    for k in 0..8 {
+        let s = |b: usize| if k & b == 0 { -1.0 } else { 1.0 };
+        let local = Vec3::new(s(1) * half.x, s(2) * half.y, s(4) * half.z);
+        vertices.push(pose.transform_point(&local.into()).coords);
+    }
+    // Corner k has x from bit 1, y from bit 2, z from bit 4; each face as
+    // two triangles wound outward.
+    for [a, b, c, d] in [
+        [0, 2, 3, 1],
+        [4, 5, 7, 6],
+        [0, 1, 5, 4],
+        [2, 6, 7, 3],
+        [0, 4, 6, 2],
+        [1, 3, 7, 5],
+    ] {
+        indices.push([base + a, base + b, base + c]);
+        indices.push([base + a, base + c, base + d]);
+    }
+}
+
+#[test]
+fn a_face_dipped_into_away_from_a_deep_corner_is_found() {
+    // One tool of two parts over the block's top face (z = 0, ±1 mm; its two
+    // triangles share the corner (1, 1) mm): a box 1.1 mm square whose
+    // tilted bottom dips 20 µm under that corner and rises at a slope of
+    // 0.05 toward the face's centre, and a ridge 0.2 mm wide along
+    // x = 0.2 mm whose bottom is 60 µm under the face. In each triangle the
+    // deepest samples are under the tilted box, and a search from them ends
+    // at the corner (the vertex's contact); the ridge, 60 µm into the same
+    // faces between the samples, is found by a second search from a sample
+    // away from that corner (without it, no face contact).
+    let (mut vertices, mut indices) = (Vec::new(), Vec::new());
+    let slope: f64 = 0.05;
+    let axis = nalgebra::Unit::new_normalize(Vec3::new(1.0, -1.0, 0.0));
+    let tilt = UnitQuaternion::from_axis_angle(&axis, -slope.atan());
+    // The bottom plane passes 20 µm under the corner and rises along the
+    // diagonal toward the block's centre.
+    let half = Vec3::new(0.55e-3, 0.55e-3, 0.5e-3);
+    let corner = Vec3::new(1e-3, 1e-3, -20e-6);
+    let centre = corner + tilt * Vec3::new(0.0, 0.0, half.z);
+    push_box(
+        &Isometry3::from_parts(Translation3::from(centre), tilt),
+        half,
+        &mut vertices,
+        &mut indices,
+    );
+    push_box(
+        &at(0.2e-3, 0.0, 0.5e-3 - 60e-6),
+        Vec3::new(0.1e-3, 1.5e-3, 0.5e-3),
+        &mut vertices,
+        &mut indices,
+    );
+    let tool = RigidTool::new(ToolShape::TriMesh { vertices, indices }, at(0.0, 0.0, 0.0)).unwrap();
+    // 20 µm under the corner vertically, 20 µm · cos(atan 0.05) across.
+    let under = tool
+        .proximity(&Vec3::new(1e-3, 1e-3, 0.0), 1.0)
+        .unwrap()
+        .distance;
+    assert!(
+        (under + 20e-6 / (1.0 + slope * slope).sqrt()).abs() < 1e-12,
+        "{under:e}"
+    );
+    assert!(
+        (tool
+            .proximity(&Vec3::new(0.2e-3, 0.5e-3, 0.0), 1.0)
+            .unwrap()
+            .distance
+            + 60e-6)
+            .abs()
+            < 1e-9
+    );
+    assert!(
+        tool.proximity(&Vec3::new(0.6e-3, 0.6e-3, 0.0), 1.0)
+            .unwrap()
+            .distance
+            > 0.0
+    );
+    let scene = block_under(tool, true);
+    let settings = ContactSettings {
+        tool_faces: true,
+        ..Default::default()
+    };
+    let mut detect = ContactSolver::new(settings).unwrap();
+    detect
+        .detect(&scene.bodies, &scene.tools, 0.01, PassKind::First)
+        .unwrap();
+    let x = scene.bodies[0].positions();
+    let deep_corner = (0..x.len())
+        .find(|&n| (x[n] - Vec3::new(1e-3, 1e-3, 0.0)).norm() < 1e-9)
+        .unwrap() as u32;
+    let top: Vec<[usize; 3]> = scene.bodies[0]
+        .surface()
+        .volume_triangles()
+        .filter(|t| t.iter().all(|&n| x[n].z == 0.0))
+        .collect();
+    assert_eq!(top.len(), 2);
+    // Each top triangle gets its face contact on the ridge.
+    for t in &top {
+        let mut nodes = t.map(|n| n as u32);
+        nodes.sort_unstable();
+        let on_ridge = detect.contacts().iter().find(|c| {
+            let mut n = c.a.nodes;
+            n.sort_unstable();
+            c.a.weights[0] < 1.0 && n == nodes
+        });
+        assert!(nodes.contains(&deep_corner), "{t:?}");
+        let c = on_ridge.unwrap_or_else(|| panic!("triangle {t:?}: no face contact"));
+        assert!(c.gap < -59e-6, "{t:?}: {:e} m", c.gap);
+        assert!(
+            (c.point.x - 0.2e-3).abs() <= 0.1e-3 + 1e-9,
+            "{t:?}: {}",
+            c.point
+        );
+    }
+}
+
 #[test]
 fn a_flat_tool_face_adds_no_face_contacts() {
     // A box pressed 20 µm flat into the whole top face: the signed distance

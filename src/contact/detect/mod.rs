@@ -248,7 +248,8 @@ struct FaceDetect {
 /// signed distance is 1-Lipschitz, so a sample is at least a corner's
 /// distance less its distance to that corner), and from the deepest sample
 /// near enough a pattern search ([`deepest_near`]) finds the deepest point
-/// about it. That point makes a contact on the triangle's three nodes,
+/// about it; where that is a corner, a second search starts from the
+/// deepest sample at least halfway from it. That point makes a contact on the triangle's three nodes,
 /// weighted by its barycentric coordinates, where it is within the band,
 /// deeper than every corner by [`DetectParams::face_deeper`] and not a
 /// corner (the vertex's contact). A point on an edge may be found by both
@@ -300,8 +301,9 @@ fn tool_faces(
         let near = limit + longest / (4.0 * 3f64.sqrt());
         // Deep enough to find the surface from anywhere inside the tool.
         let reach = near.max(0.0) + f.inner;
-        let mut best: Option<([f64; 3], ToolProximity)> = None;
-        for w in &FACE_SAMPLES {
+        // Each sample near enough, with its proximity.
+        let mut found: [Option<ToolProximity>; FACE_SAMPLES.len()] = [None; FACE_SAMPLES.len()];
+        for (w, found) in FACE_SAMPLES.iter().zip(&mut found) {
             let q = at(&p, w);
             let bound = (0..3)
                 .map(|c| d[c] - (q - p[c]).norm())
@@ -310,17 +312,23 @@ fn tool_faces(
                 continue;
             }
             pairs += 1;
-            let Some(prox) = tool.proximity(&q, reach) else {
-                continue;
-            };
-            if prox.distance < near && best.is_none_or(|b| prox.distance < b.1.distance) {
-                best = Some((*w, prox));
-            }
+            *found = tool
+                .proximity(&q, reach)
+                .filter(|prox| prox.distance < near);
         }
-        let Some((w, prox)) = best else {
+        let Some((w, prox)) = deepest_sample(&found, |_| true) else {
             continue;
         };
-        let (w, prox) = deepest_near(&p, w, prox, tool, reach, &mut pairs);
+        let (mut w, mut prox) = deepest_near(&p, w, prox, tool, reach, &mut pairs);
+        // A search that ends at a corner found the vertex's contact; a
+        // non-convex tool (the vectis's bowl) can also dip into the face
+        // away from that corner, where a sample at least halfway from it
+        // starts a second search.
+        if let Some(c) = w.iter().position(|&x| x == 1.0)
+            && let Some((w2, prox2)) = deepest_sample(&found, |s| s[c] <= 0.5)
+        {
+            (w, prox) = deepest_near(&p, w2, prox2, tool, reach, &mut pairs);
+        }
         // At a corner: the vertex's contact. On an edge: kept whichever of
         // the edge's triangles found it (below, the deeper of the two).
         if prox.distance >= limit || w.iter().filter(|&&c| c == 0.0).count() > 1 {
@@ -344,6 +352,20 @@ fn tool_faces(
         push_deepest_on_edge(out, start, face);
     }
     pairs
+}
+
+/// The deepest of the samples `found` near enough (see [`tool_faces`]) whose
+/// barycentric point `keep` accepts, with its proximity.
+fn deepest_sample(
+    found: &[Option<ToolProximity>; FACE_SAMPLES.len()],
+    keep: impl Fn(&[f64; 3]) -> bool,
+) -> Option<([f64; 3], ToolProximity)> {
+    FACE_SAMPLES
+        .iter()
+        .zip(found)
+        .filter_map(|(w, f)| Some((*w, (*f)?)))
+        .filter(|(w, _)| keep(w))
+        .min_by(|a, b| a.1.distance.total_cmp(&b.1.distance))
 }
 
 /// The nodes of the edge that the face contact `c` lies on (in ascending
