@@ -319,15 +319,21 @@ fn tool_faces(
         let Some((w, prox)) = deepest_sample(&found, |_| true) else {
             continue;
         };
-        let (mut w, mut prox) = deepest_near(&p, w, prox, tool, reach, &mut pairs);
+        let Some((mut w, mut prox)) = deepest_near(&p, w, prox, tool, reach, None, &mut pairs)
+        else {
+            continue;
+        };
         // A search that ends at a corner found the vertex's contact; a
         // non-convex tool (the vectis's bowl) can also dip into the face
         // away from that corner, where a sample at least halfway from it
-        // starts a second search.
+        // starts a second search, given up once it heads back to the corner.
         if let Some(c) = w.iter().position(|&x| x == 1.0)
             && let Some((w2, prox2)) = deepest_sample(&found, |s| s[c] <= 0.5)
         {
-            (w, prox) = deepest_near(&p, w2, prox2, tool, reach, &mut pairs);
+            let Some(second) = deepest_near(&p, w2, prox2, tool, reach, Some(c), &mut pairs) else {
+                continue;
+            };
+            (w, prox) = second;
         }
         // At a corner: the vertex's contact. On an edge: kept whichever of
         // the edge's triangles found it (below, the deeper of the two).
@@ -412,15 +418,18 @@ const DEEPEST_LEVELS: usize = 8;
 /// point `w` (whose proximity is `prox`): a pattern search that moves the
 /// point by `step` along the six directions between two corners, to the
 /// deepest neighbour inside the triangle, and halves the step where none is
-/// deeper. Counts its proximity queries in `pairs`.
+/// deeper. Counts its proximity queries in `pairs`. With `away_from` a
+/// corner, the search gives up (`None`) once it moves more than halfway
+/// toward that corner: back to where a search before it ended.
 fn deepest_near(
     p: &[Vec3; 3],
     mut w: [f64; 3],
     mut prox: ToolProximity,
     tool: &RigidTool,
     reach: f64,
+    away_from: Option<usize>,
     pairs: &mut usize,
-) -> ([f64; 3], ToolProximity) {
+) -> Option<([f64; 3], ToolProximity)> {
     let mut step: f64 = 1.0 / 8.0;
     for _ in 0..DEEPEST_LEVELS {
         loop {
@@ -446,10 +455,13 @@ fn deepest_near(
             if !moved {
                 break;
             }
+            if away_from.is_some_and(|c| w[c] > 0.5) {
+                return None;
+            }
         }
         step *= 0.5;
     }
-    (w, prox)
+    Some((w, prox))
 }
 
 /// Whether `c` is a tool's contact inside a surface triangle
@@ -798,7 +810,7 @@ mod tests {
         let w = FACE_SAMPLES[0];
         let start = tool.proximity(&((p[0] + p[1] + p[2]) / 3.0), 1.0).unwrap();
         let mut pairs = 0;
-        let (w, prox) = deepest_near(&p, w, start, &tool, 1.0, &mut pairs);
+        let (w, prox) = deepest_near(&p, w, start, &tool, 1.0, None, &mut pairs).unwrap();
         assert!(prox.distance < start.distance);
         assert!((prox.distance + 50e-6).abs() < 5e-7, "{}", prox.distance);
         let q = at(&p, &w);
