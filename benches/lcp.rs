@@ -6,12 +6,16 @@
 //! ```text
 //! cargo bench --bench lcp                         # the problems in benches/data
 //! cargo bench --bench lcp -- --dir DIR            # and every *.lcp in DIR
+//! cargo bench --bench lcp -- --dir benches/data/faces   # a problem with face contacts
 //! cargo bench --bench lcp -- --dir DIR --repeats 5 --limit 2000 --solver subspace
 //! cargo bench --bench lcp -- --dir DIR --solver subspace --misses   # and name the misses
 //! ```
 //!
 //! Record problems with `cargo run --release --example cataract -- --headless
-//! --record-lcp DIR` (steps with more than 90 contacts by default). Prints a
+//! --record-lcp DIR` (steps with more than 90 contacts by default). The
+//! problem in `benches/data/faces` is replayed as recorded, its face rows
+//! unshifted (a first pass shifts them: `contact::FACE_ROW_SHIFT`; its
+//! `.faces` file lists them). Prints a
 //! Markdown table per solver and target: the median and largest sweeps, how
 //! many problems met the target within 100 sweeps and at all (within
 //! `--limit`), and the median and range of the milliseconds per problem
