@@ -249,12 +249,12 @@ struct FaceDetect {
 /// distance less its distance to that corner), and from the deepest sample
 /// near enough a pattern search ([`deepest_near`]) finds the deepest point
 /// about it; where that is a corner, a second search starts from the
-/// deepest sample at least halfway from it. That point makes a contact on the triangle's three nodes,
-/// weighted by its barycentric coordinates, where it is within the band,
-/// deeper than every corner by [`DetectParams::face_deeper`] and not a
-/// corner (the vertex's contact). A point on an edge may be found by both
-/// of the edge's triangles (a rod across the edge is deepest there from
-/// both sides); the deeper is kept.
+/// deepest sample at least halfway from it. That point makes a contact on
+/// the triangle's three nodes, weighted by its barycentric coordinates,
+/// where it is within the band, deeper than every corner by
+/// [`DetectParams::face_deeper`] and not a corner (the vertex's contact). A
+/// point on an edge may be found by both of the edge's triangles (a rod
+/// across the edge is deepest there from both sides); the deeper is kept.
 ///
 /// Face contacts are frictionless: they hold the faces out of the tool, and
 /// friction stays with the vertex contacts. A face contact's tangent rows lie
@@ -327,7 +327,7 @@ fn tool_faces(
         // non-convex tool (the vectis's bowl) can also dip into the face
         // away from that corner, where a sample at least halfway from it
         // starts a second search, given up once it heads back to the corner.
-        if let Some(c) = w.iter().position(|&x| x == 1.0)
+        if let Some(c) = corner_of(&w)
             && let Some((w2, prox2)) = deepest_sample(&found, |s| s[c] <= 0.5)
         {
             let Some(second) = deepest_near(&p, w2, prox2, tool, reach, Some(c), &mut pairs) else {
@@ -337,7 +337,7 @@ fn tool_faces(
         }
         // At a corner: the vertex's contact. On an edge: kept whichever of
         // the edge's triangles found it (below, the deeper of the two).
-        if prox.distance >= limit || w.iter().filter(|&&c| c == 0.0).count() > 1 {
+        if prox.distance >= limit || corner_of(&w).is_some() {
             continue;
         }
         let face = Contact {
@@ -358,6 +358,16 @@ fn tool_faces(
         push_deepest_on_edge(out, start, face);
     }
     pairs
+}
+
+/// The corner that the barycentric point `w` is at (the other two weights
+/// zero), if any.
+fn corner_of(w: &[f64; 3]) -> Option<usize> {
+    if w.iter().filter(|&&c| c == 0.0).count() > 1 {
+        w.iter().position(|&c| c != 0.0)
+    } else {
+        None
+    }
 }
 
 /// The deepest of the samples `found` near enough (see [`tool_faces`]) whose
