@@ -97,9 +97,9 @@ use predict::Prediction;
 ///
 /// A face contact's row acts on its triangle's three nodes along nearly the
 /// normal of its corners' own contacts, so it is nearly a combination of
-/// their rows: in the first-pass problems of the cataract jam the pivots of
-/// the normal rows' block of `W` fell to 10⁻¹⁰–10⁻¹⁶ of their diagonal with
-/// the face rows, against 10⁻³ without them. The forces are then not unique,
+/// their rows: in first-pass problems of the cataract jam the smallest pivot
+/// of the normal rows' block of `W` was 10⁻⁷–10⁻¹⁶ of its diagonal with the
+/// face rows, against 10⁻³ without them. The forces are then not unique,
 /// and the subspace LCP ran to its sweep cap in 9 of the 289 first passes
 /// of a delivery with more than 90 contacts (test
 /// `a_problem_with_face_contacts_solves_with_their_rows_shifted`); with the

@@ -100,15 +100,18 @@ pub struct ContactSettings {
     /// where that point is inside the alarm band and deeper than all three
     /// corners by [`Self::penetration_tolerance`] it becomes a frictionless
     /// contact on the triangle's three nodes, weighted by its barycentric
-    /// coordinates (friction stays with the vertex contacts). A flat tool
-    /// face against a face adds no row (the vertices carry it). Refinement
-    /// passes keep the pass before's face contacts, and the penetration
-    /// they end within covers these points too. The stability suite's thin
-    /// rod drawn across the lens keeps its faces out to twice the tolerance
-    /// and the energy bound. Off by default: in the cataract jam it costs
-    /// about two thirds of the steps per second (the face search, more
-    /// passes, harder LCPs, 4–16 first-pass solves a run at the sweep cap;
-    /// see the README, "Tool contacts inside faces"). Experimental.
+    /// coordinates (friction stays with the vertex contacts); where the
+    /// search ends at a corner, a second one starts away from it. A flat
+    /// tool face against a face adds no row (the vertices carry it). A first
+    /// pass solves with the face rows' diagonal shifted
+    /// ([`super::FACE_ROW_SHIFT`]): with their corners' rows they are nearly
+    /// dependent. Refinement passes keep the pass before's face contacts,
+    /// and the penetration they end within covers these points too. The
+    /// stability suite's thin rod drawn across the lens keeps its faces out
+    /// to twice the tolerance and the energy bound. Off by default: in the
+    /// cataract jam it costs more than half of the steps per second (the
+    /// face search, more passes, larger LCPs; see the README, "Tool contacts
+    /// inside faces"). Experimental.
     pub tool_faces: bool,
 }
 
