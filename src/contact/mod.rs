@@ -190,8 +190,9 @@ impl ContactSolver {
     /// `min_contacts` contacts, and of every problem (any pass) whose solve
     /// ran to its sweep limit (`None`: keep none, the default), to be taken
     /// with [`Self::take_recorded_problem`] and replayed through any solver
-    /// ([`ContactProblem`]). Recording copies `W`: a tool for benchmarks,
-    /// not for every step of a running scene.
+    /// ([`ContactProblem`]), as the solver got it: with face contacts, a
+    /// first pass's face rows shifted ([`FACE_ROW_SHIFT`]). Recording copies
+    /// `W`: a tool for benchmarks, not for every step of a running scene.
     pub fn record_problems(&mut self, min_contacts: Option<usize>) {
         self.record_from = min_contacts;
         if min_contacts.is_none() {
