@@ -152,9 +152,9 @@ pub struct ContactSolver {
     /// The last pass's tool contacts inside faces, which the next
     /// refinement pass keeps ([`detect::keep_faces`]).
     faces: Vec<Contact>,
-    /// A first pass's unshifted diagonal entries of the face rows of `w`
-    /// ([`FACE_ROW_SHIFT`]), put back after its solve.
-    face_diagonal: Vec<f64>,
+    /// A first pass's face rows' diagonal entries of `w` (index into `w`,
+    /// unshifted value; [`FACE_ROW_SHIFT`]), put back after its solve.
+    face_diagonal: Vec<(usize, f64)>,
     h: f64,
     /// First passes so far (the prediction's step count).
     steps: u64,
@@ -583,22 +583,17 @@ impl ContactSolver {
         self.face_diagonal.clear();
         for (c, &r) in self.contacts.iter().zip(&self.jac.rows) {
             if detect::is_tool_face(c) {
-                self.face_diagonal.push(self.w[r * m + r]);
-                self.w[r * m + r] *= 1.0 + FACE_ROW_SHIFT;
+                let k = r * m + r;
+                self.face_diagonal.push((k, self.w[k]));
+                self.w[k] *= 1.0 + FACE_ROW_SHIFT;
             }
         }
     }
 
     /// Puts back the diagonal entries [`Self::shift_face_rows`] changed.
     fn unshift_face_rows(&mut self) {
-        let m = self.jac.m();
-        let mut kept = self.face_diagonal.iter();
-        for (c, &r) in self.contacts.iter().zip(&self.jac.rows) {
-            if detect::is_tool_face(c)
-                && let Some(&d) = kept.next()
-            {
-                self.w[r * m + r] = d;
-            }
+        for &(k, d) in &self.face_diagonal {
+            self.w[k] = d;
         }
     }
 

@@ -455,28 +455,20 @@ fn a_tool_between_vertices_is_held_out_of_the_face() {
     }
 }
 
-/// The 8 corners and 12 outward triangles of a box of half extents `half`
-/// at `pose`, appended to `vertices` and `indices`.
+/// The triangles of a box of half extents `half` at `pose` (parry's own
+/// mesh of a cuboid), appended to `vertices` and `indices`.
 fn push_box(pose: &Pose, half: Vec3, vertices: &mut Vec<Vec3>, indices: &mut Vec<[u32; 3]>) {
+    let cuboid =
+        parry3d_f64::shape::Cuboid::new(parry3d_f64::math::Vector::new(half.x, half.y, half.z));
+    let (corners, triangles) = cuboid.to_trimesh();
     let base = vertices.len() as u32;
-    for k in 0..8 {
-        let s = |b: usize| if k & b == 0 { -1.0 } else { 1.0 };
-        let local = Vec3::new(s(1) * half.x, s(2) * half.y, s(4) * half.z);
-        vertices.push(pose.transform_point(&local.into()).coords);
+    for c in corners {
+        vertices.push(
+            pose.transform_point(&Vec3::new(c.x, c.y, c.z).into())
+                .coords,
+        );
     }
-    // Corner k has x from bit 1, y from bit 2, z from bit 4; each face as
-    // two triangles wound outward.
-    for [a, b, c, d] in [
-        [0, 2, 3, 1],
-        [4, 5, 7, 6],
-        [0, 1, 5, 4],
-        [2, 6, 7, 3],
-        [0, 4, 6, 2],
-        [1, 3, 7, 5],
-    ] {
-        indices.push([base + a, base + b, base + c]);
-        indices.push([base + a, base + c, base + d]);
-    }
+    indices.extend(triangles.iter().map(|t| t.map(|k| base + k)));
 }
 
 #[test]

@@ -303,7 +303,7 @@ fn tool_faces(
         let reach = near.max(0.0) + f.inner;
         // Each sample near enough, with its proximity.
         let mut found: [Option<ToolProximity>; FACE_SAMPLES.len()] = [None; FACE_SAMPLES.len()];
-        for (w, found) in FACE_SAMPLES.iter().zip(&mut found) {
+        for (w, slot) in FACE_SAMPLES.iter().zip(&mut found) {
             let q = at(&p, w);
             let bound = (0..3)
                 .map(|c| d[c] - (q - p[c]).norm())
@@ -312,7 +312,7 @@ fn tool_faces(
                 continue;
             }
             pairs += 1;
-            *found = tool
+            *slot = tool
                 .proximity(&q, reach)
                 .filter(|prox| prox.distance < near);
         }
