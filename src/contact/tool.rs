@@ -177,6 +177,73 @@ pub struct RigidTool {
     friction: f64,
     reaction_force: Vec3,
     reaction_torque: Vec3,
+    concave: Concavity,
+}
+
+/// How much a tool's surface bends back toward a point outside it: its
+/// concave (reflex) edges' largest turn between the two faces' normals, as
+/// the largest slope its signed distance along a straight line can lose,
+/// and per length (the turn over the distance between the faces'
+/// centroids, as a curvature). Zero for a convex tool.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Concavity {
+    /// `2 sin(θ/2)` of the largest turn θ: how much the unit normal changes.
+    turn: f64,
+    /// The largest turn per the distance between the faces' centroids (1/m).
+    curvature: f64,
+}
+
+impl Concavity {
+    const CONVEX: Self = Self {
+        turn: 0.0,
+        curvature: 0.0,
+    };
+    /// For a mesh whose edges are not each shared by two triangles: so
+    /// large that no direction is ruled out.
+    const UNKNOWN: Self = Self {
+        turn: 2.0,
+        curvature: f64::INFINITY,
+    };
+
+    /// The concave edges of a closed, outward-oriented triangle mesh.
+    fn of_mesh(vertices: &[Vec3], indices: &[[u32; 3]]) -> Self {
+        let mut faces_of = std::collections::HashMap::new();
+        for (f, t) in indices.iter().enumerate() {
+            for e in 0..3 {
+                let (a, b) = (t[e], t[(e + 1) % 3]);
+                faces_of
+                    .entry((a.min(b), a.max(b)))
+                    .or_insert_with(Vec::new)
+                    .push((f, t[(e + 2) % 3]));
+            }
+        }
+        let v = |i: u32| vertices[i as usize];
+        let normal = |t: &[u32; 3]| (v(t[1]) - v(t[0])).cross(&(v(t[2]) - v(t[0])));
+        let centroid = |t: &[u32; 3]| (v(t[0]) + v(t[1]) + v(t[2])) / 3.0;
+        let mut out = Self::CONVEX;
+        for (&(a, b), faces) in &faces_of {
+            let &[(f1, _), (f2, opposite)] = faces.as_slice() else {
+                return Self::UNKNOWN;
+            };
+            let (Some(n1), Some(n2)) = (
+                normal(&indices[f1]).try_normalize(1e-300),
+                normal(&indices[f2]).try_normalize(1e-300),
+            ) else {
+                return Self::UNKNOWN;
+            };
+            // Concave where the second face's far corner lies outside the
+            // first face's plane.
+            let length = (v(b) - v(a)).norm();
+            if n1.dot(&(v(opposite) - v(a))) <= 1e-9 * length {
+                continue;
+            }
+            let theta = n1.cross(&n2).norm().atan2(n1.dot(&n2));
+            let apart = (centroid(&indices[f1]) - centroid(&indices[f2])).norm();
+            out.turn = out.turn.max(2.0 * (theta / 2.0).sin());
+            out.curvature = out.curvature.max(theta / apart);
+        }
+        out
+    }
 }
 
 impl std::fmt::Debug for RigidTool {
@@ -214,6 +281,13 @@ impl RigidTool {
     pub fn new(shape: ToolShape, pose: Pose) -> Result<Self> {
         check_pose(&pose)?;
         let parry = shape.build()?;
+        let concave = match parry.as_trimesh() {
+            Some(mesh) => {
+                let vertices: Vec<Vec3> = mesh.vertices().iter().map(|p| from_p(*p)).collect();
+                Concavity::of_mesh(&vertices, mesh.indices())
+            }
+            None => Concavity::CONVEX,
+        };
         Ok(Self {
             shape,
             parry,
@@ -222,7 +296,24 @@ impl RigidTool {
             friction: 0.0,
             reaction_force: Vec3::zeros(),
             reaction_torque: Vec3::zeros(),
+            concave,
         })
+    }
+
+    /// How much the slope of the tool's signed distance along a straight
+    /// step of `length` can fall below its slope at the start, as estimated
+    /// from the tool's concave edges: the curvature times the length, at
+    /// most the largest turn of the normal (0 for a convex tool; no bound for
+    /// a mesh whose edges are not each shared by two triangles). On a surface
+    /// of curvature κ that bends toward the point the distance falls below
+    /// its tangent by κt²/2 over a step t; this allows twice that.
+    pub(crate) fn concave_bend(&self, length: f64) -> f64 {
+        let Concavity { turn, curvature } = self.concave;
+        if turn == 0.0 {
+            0.0
+        } else {
+            turn.min(curvature * length)
+        }
     }
 
     /// Sets the Coulomb friction coefficient μ ≥ 0.
@@ -356,5 +447,77 @@ impl RigidTool {
     pub(crate) fn set_reaction(&mut self, force: Vec3, torque: Vec3) {
         self.reaction_force = force;
         self.reaction_torque = torque;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A cube of half size 1 mm whose top face is an inverted square pyramid
+    /// `h` mm deep (its four triangles meeting at the sunken centre), or with
+    /// `open` the cube with one of its triangles left out.
+    fn dented_cube(h: f64, open: bool) -> ToolShape {
+        let s = 1e-3;
+        let cuboid = parry3d_f64::shape::Cuboid::new(PVec::new(s, s, s));
+        let (corners, triangles) = cuboid.to_trimesh();
+        let mut vertices: Vec<Vec3> = corners.iter().map(|c| Vec3::new(c.x, c.y, c.z)).collect();
+        let top = |i: u32| vertices[i as usize].z > 0.0;
+        let mut indices: Vec<[u32; 3]> = triangles
+            .iter()
+            .filter(|t| !t.iter().all(|&i| top(i)))
+            .copied()
+            .collect();
+        let corner = |x: f64, y: f64| {
+            vertices
+                .iter()
+                .position(|v| v.x * x > 0.0 && v.y * y > 0.0 && v.z > 0.0)
+                .unwrap() as u32
+        };
+        let ring = [
+            corner(-1.0, -1.0),
+            corner(1.0, -1.0),
+            corner(1.0, 1.0),
+            corner(-1.0, 1.0),
+        ];
+        vertices.push(Vec3::new(0.0, 0.0, s * (1.0 - h)));
+        let m = (vertices.len() - 1) as u32;
+        for k in 0..4 {
+            indices.push([ring[k], ring[(k + 1) % 4], m]);
+        }
+        if open {
+            indices.pop();
+        }
+        ToolShape::TriMesh { vertices, indices }
+    }
+
+    #[test]
+    fn convex_tools_do_not_bend_back_and_a_dent_does_by_its_turn() {
+        let pose = Pose::identity();
+        for shape in [
+            ToolShape::Sphere { radius: 1e-3 },
+            ToolShape::Box {
+                half_extents: Vec3::new(1e-3, 2e-3, 3e-3),
+            },
+            dented_cube(0.0, false),
+        ] {
+            let tool = RigidTool::new(shape, pose).unwrap();
+            assert_eq!(tool.concave_bend(1.0), 0.0);
+        }
+        // Two neighbouring faces of the dent have normals (-h, 0, 1) and
+        // (0, -h, 1) (in units of the half size), a turn θ with
+        // cos θ = 1 / (1 + h²), and centroids (2/3)·√2 apart.
+        let h = 0.3;
+        let tool = RigidTool::new(dented_cube(h, false), pose).unwrap();
+        let theta = (1.0 / (1.0 + h * h)).acos();
+        let curvature = theta / (2.0 / 3.0 * 2f64.sqrt() * 1e-3);
+        let turn = 2.0 * (theta / 2.0).sin();
+        let short = 1e-6;
+        assert!((tool.concave_bend(short) - curvature * short).abs() < 1e-9 * curvature * short);
+        assert!((tool.concave_bend(1.0) - turn).abs() < 1e-12);
+        // An open mesh: no bound, nothing is ruled out.
+        if let Ok(tool) = RigidTool::new(dented_cube(h, true), pose) {
+            assert!(tool.concave_bend(1e-9) >= 1.0);
+        }
     }
 }

@@ -245,8 +245,9 @@ struct FaceDetect {
 ///
 /// Each triangle whose bounds meet the tool's `tb` and that has a free node
 /// queries the [`FACE_SAMPLES`] that can lie near a point deep enough (the
-/// signed distance is 1-Lipschitz, so a sample is at least a corner's
-/// distance less its distance to that corner), and from the deepest sample
+/// signed distance is 1-Lipschitz, so a sample is at least a corner's, or
+/// a sample's queried before it, distance less its distance to that point),
+/// and from the deepest sample
 /// near enough a pattern search ([`deepest_near`]) finds the deepest point
 /// about it; where that is a corner, a second search starts from the
 /// deepest sample at least halfway from it. That point makes a contact on
@@ -301,21 +302,7 @@ fn tool_faces(
         let near = limit + longest / (4.0 * 3f64.sqrt());
         // Deep enough to find the surface from anywhere inside the tool.
         let reach = near.max(0.0) + f.inner;
-        // Each sample near enough, with its proximity.
-        let mut found: [Option<ToolProximity>; FACE_SAMPLES.len()] = [None; FACE_SAMPLES.len()];
-        for (w, slot) in FACE_SAMPLES.iter().zip(&mut found) {
-            let q = at(&p, w);
-            let bound = (0..3)
-                .map(|c| d[c] - (q - p[c]).norm())
-                .fold(f64::NEG_INFINITY, f64::max);
-            if bound >= near {
-                continue;
-            }
-            pairs += 1;
-            *slot = tool
-                .proximity(&q, reach)
-                .filter(|prox| prox.distance < near);
-        }
+        let found = near_samples(&p, &d, near, reach, tool, &mut pairs);
         let Some((w, prox)) = deepest_sample(&found, |_| true) else {
             continue;
         };
@@ -358,6 +345,52 @@ fn tool_faces(
         push_deepest_on_edge(out, start, face);
     }
     pairs
+}
+
+/// The [`FACE_SAMPLES`] of the triangle `p` closer to `tool` than `near`,
+/// with their proximities (queried within `reach`), where `d` are lower
+/// bounds on the corners' signed distances. The signed distance is
+/// 1-Lipschitz: a sample is queried only where neither a corner nor a sample
+/// queried before it (at least `reach` away where none was found) is far
+/// enough to put it at `near` or beyond. Counts the queries in `pairs`.
+fn near_samples(
+    p: &[Vec3; 3],
+    d: &[f64; 3],
+    near: f64,
+    reach: f64,
+    tool: &RigidTool,
+    pairs: &mut usize,
+) -> [Option<ToolProximity>; FACE_SAMPLES.len()] {
+    let mut found = [None; FACE_SAMPLES.len()];
+    let mut queried = [(Vec3::zeros(), 0.0); FACE_SAMPLES.len()];
+    let mut n_queried = 0;
+    for (w, slot) in FACE_SAMPLES.iter().zip(&mut found) {
+        let q = at(p, w);
+        let bound = (0..3)
+            .map(|c| (p[c], d[c]))
+            .chain(queried[..n_queried].iter().copied())
+            .map(|(r, dr)| dr - (q - r).norm())
+            .fold(f64::NEG_INFINITY, f64::max);
+        if bound >= near {
+            continue;
+        }
+        *pairs += 1;
+        let prox = tool.proximity(&q, reach);
+        queried[n_queried] = (q, prox.map_or(reach, |x| x.distance));
+        n_queried += 1;
+        *slot = prox.filter(|x| x.distance < near);
+    }
+    found
+}
+
+/// Whether a step `along` from a point whose tool normal is `normal` cannot
+/// reach a point deeper in the tool, whose signed distance's slope falls
+/// along the step by at most `bend` ([`RigidTool::concave_bend`]; 0 for a
+/// convex tool, where the normal is a (sub)gradient of a convex function,
+/// which then rises along every direction the normal does): the normal
+/// rises along it by more than that, by a margin far above round-off.
+fn cannot_go_deeper(normal: &Vec3, along: &Vec3, bend: f64) -> bool {
+    normal.dot(along) > (1e-9 + bend) * along.norm()
 }
 
 /// The corner that the barycentric point `w` is at (the other two weights
@@ -428,7 +461,11 @@ const DEEPEST_LEVELS: usize = 8;
 /// point `w` (whose proximity is `prox`): a pattern search that moves the
 /// point by `step` along the six directions between two corners, to the
 /// deepest neighbour inside the triangle, and halves the step where none is
-/// deeper. Counts its proximity queries in `pairs`. With `away_from` a
+/// deeper. A step along which the tool's outward normal at the point rises
+/// more steeply than the tool's concave parts can bend it back is not tried
+/// ([`cannot_go_deeper`]; where the tool is convex no step the normal rises
+/// along is deeper, so there the search takes the same path). Counts its
+/// proximity queries in `pairs`. With `away_from` a
 /// corner, the search gives up (`None`) once it moves more than halfway
 /// toward that corner: back to where a search before it ended.
 fn deepest_near(
@@ -447,7 +484,10 @@ fn deepest_near(
             for (from, to) in [(0, 1), (1, 0), (1, 2), (2, 1), (2, 0), (0, 2)] {
                 let mut v = w;
                 let s = step.min(v[from]);
-                if s <= 0.0 {
+                let along = (p[to] - p[from]) * s;
+                if s <= 0.0
+                    || cannot_go_deeper(&prox.normal, &along, tool.concave_bend(along.norm()))
+                {
                     continue;
                 }
                 v[from] -= s;
@@ -692,6 +732,100 @@ fn vertex_triangle<B: Bodies + ?Sized>(
 mod tests {
     use super::*;
     use crate::contact::tool::{Pose, ToolShape};
+    use proptest::prelude::*;
+    use proptest::test_runner::{Config, RngSeed};
+
+    /// A convex tool of size about 1 mm centred at `centre` and turned by
+    /// `angles`: a sphere, a box, or a box's triangle mesh (as parry
+    /// builds it), by `kind`.
+    fn convex_tool(kind: usize, centre: Vec3, angles: Vec3) -> RigidTool {
+        let half = Vec3::new(0.6e-3, 0.4e-3, 0.25e-3);
+        let shape = match kind {
+            0 => ToolShape::Sphere { radius: 0.5e-3 },
+            1 => ToolShape::Box { half_extents: half },
+            _ => {
+                let cuboid = parry3d_f64::shape::Cuboid::new(parry3d_f64::math::Vector::new(
+                    half.x, half.y, half.z,
+                ));
+                let (corners, indices) = cuboid.to_trimesh();
+                let vertices = corners.iter().map(|c| Vec3::new(c.x, c.y, c.z)).collect();
+                ToolShape::TriMesh { vertices, indices }
+            }
+        };
+        let pose = Pose::from_parts(
+            nalgebra::Translation3::from(centre),
+            nalgebra::UnitQuaternion::from_euler_angles(angles.x, angles.y, angles.z),
+        );
+        RigidTool::new(shape, pose).unwrap()
+    }
+
+    fn vec3(r: f64) -> impl Strategy<Value = Vec3> {
+        (-r..r, -r..r, -r..r).prop_map(|(x, y, z)| Vec3::new(x, y, z))
+    }
+
+    proptest! {
+        #![proptest_config(Config {
+            cases: 512,
+            rng_seed: RngSeed::Fixed(20_261_128),
+            failure_persistence: None,
+            ..Config::default()
+        })]
+
+        /// The bounds only leave out samples that a query would have found
+        /// too far: the samples kept are those of querying all thirteen.
+        #[test]
+        fn a_sample_is_left_unqueried_only_where_it_is_too_far(
+            kind in 0..3usize,
+            angles in vec3(3.0),
+            corners in [vec3(1.2e-3), vec3(1.2e-3), vec3(1.2e-3)],
+            slack in [0.0..1e-4, 0.0..1e-4, 0.0..1e-4],
+            near in -2e-4..4e-4f64,
+        ) {
+            let tool = convex_tool(kind, Vec3::zeros(), angles);
+            let reach = near.max(0.0) + 1e-3;
+            let far = |q: &Vec3| tool.proximity(q, reach).map_or(reach, |x| x.distance);
+            let d = [0, 1, 2].map(|c| far(&corners[c]) - slack[c]);
+            let mut pairs = 0;
+            let found = near_samples(&corners, &d, near, reach, &tool, &mut pairs);
+            for (w, f) in FACE_SAMPLES.iter().zip(&found) {
+                let all = tool
+                    .proximity(&at(&corners, w), reach)
+                    .filter(|x| x.distance < near);
+                prop_assert_eq!(f.map(|x| x.distance), all.map(|x| x.distance));
+            }
+            prop_assert!(pairs <= FACE_SAMPLES.len());
+        }
+
+        /// A step along a direction that [`cannot_go_deeper`] leaves out
+        /// never reaches a point deeper in a convex tool, at any length.
+        #[test]
+        fn a_direction_left_out_cannot_go_deeper_in_a_convex_tool(
+            kind in 0..3usize,
+            angles in vec3(3.0),
+            x in vec3(0.8e-3),
+            along in vec3(1e-3),
+            steps in prop::collection::vec(1e-4..1.0f64, 1..8),
+        ) {
+            let tool = convex_tool(kind, Vec3::zeros(), angles);
+            prop_assert_eq!(tool.concave_bend(1.0), 0.0);
+            let here = tool.proximity(&x, 1.0).unwrap();
+            // One of the two ways is left out (unless square to the normal).
+            let left_out = [along, -along].map(|a| cannot_go_deeper(&here.normal, &a, 0.0));
+            prop_assert!(
+                left_out[0] != left_out[1] || here.normal.dot(&along).abs() <= 1e-9 * along.norm()
+            );
+            for (a, out) in [along, -along].iter().zip(left_out) {
+                for &t in steps.iter().filter(|_| out) {
+                    let there = tool.proximity(&(x + a * t), 1.0).unwrap();
+                    prop_assert!(
+                        there.distance >= here.distance,
+                        "{} deeper at {t}",
+                        here.distance - there.distance
+                    );
+                }
+            }
+        }
+    }
 
     #[test]
     fn the_samples_are_points_of_the_triangle_on_the_quarter_grid() {
