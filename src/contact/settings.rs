@@ -109,9 +109,9 @@ pub struct ContactSettings {
     /// and the penetration they end within covers these points too. The
     /// stability suite's thin rod drawn across the lens keeps its faces out
     /// to twice the tolerance and the energy bound. Off by default: in the
-    /// cataract jam it costs more than half of the steps per second (the
-    /// face search, more passes, larger LCPs; see the README, "Tool contacts
-    /// inside faces"). Experimental.
+    /// cataract jam it costs about half of the steps per second (the face
+    /// search, more passes, larger LCPs; see the README, "Tool contacts
+    /// inside faces" and "Fewer queries in the face search"). Experimental.
     pub tool_faces: bool,
 }
 
