@@ -198,14 +198,17 @@ impl Concavity {
         turn: 0.0,
         curvature: 0.0,
     };
-    /// For a mesh whose edges are not each shared by two triangles: so
-    /// large that no direction is ruled out.
+    /// For a mesh whose edges are not each shared by two triangles, or of
+    /// more than one piece (the signed distance of two convex pieces is not
+    /// convex where the nearer one changes): so large that no direction is
+    /// ruled out.
     const UNKNOWN: Self = Self {
         turn: 2.0,
         curvature: f64::INFINITY,
     };
 
-    /// The concave edges of a closed, outward-oriented triangle mesh.
+    /// The concave edges of a closed, outward-oriented triangle mesh of one
+    /// piece.
     fn of_mesh(vertices: &[Vec3], indices: &[[u32; 3]]) -> Self {
         let mut faces_of = std::collections::HashMap::new();
         for (f, t) in indices.iter().enumerate() {
@@ -220,11 +223,22 @@ impl Concavity {
         let v = |i: u32| vertices[i as usize];
         let normal = |t: &[u32; 3]| (v(t[1]) - v(t[0])).cross(&(v(t[2]) - v(t[0])));
         let centroid = |t: &[u32; 3]| (v(t[0]) + v(t[1]) + v(t[2])) / 3.0;
+        // The pieces: triangles joined across their shared edges.
+        let mut piece: Vec<usize> = (0..indices.len()).collect();
+        fn root(piece: &mut [usize], mut f: usize) -> usize {
+            while piece[f] != f {
+                piece[f] = piece[piece[f]];
+                f = piece[f];
+            }
+            f
+        }
         let mut out = Self::CONVEX;
         for (&(a, b), faces) in &faces_of {
             let &[(f1, _), (f2, opposite)] = faces.as_slice() else {
                 return Self::UNKNOWN;
             };
+            let (r1, r2) = (root(&mut piece, f1), root(&mut piece, f2));
+            piece[r1] = r2;
             let (Some(n1), Some(n2)) = (
                 normal(&indices[f1]).try_normalize(1e-300),
                 normal(&indices[f2]).try_normalize(1e-300),
@@ -241,6 +255,10 @@ impl Concavity {
             let apart = (centroid(&indices[f1]) - centroid(&indices[f2])).norm();
             out.turn = out.turn.max(2.0 * (theta / 2.0).sin());
             out.curvature = out.curvature.max(theta / apart);
+        }
+        let first = root(&mut piece, 0);
+        if (1..indices.len()).any(|f| root(&mut piece, f) != first) {
+            return Self::UNKNOWN;
         }
         out
     }
@@ -304,7 +322,8 @@ impl RigidTool {
     /// step of `length` can fall below its slope at the start, as estimated
     /// from the tool's concave edges: the curvature times the length, at
     /// most the largest turn of the normal (0 for a convex tool; no bound for
-    /// a mesh whose edges are not each shared by two triangles). On a surface
+    /// a mesh of more than one piece or whose edges are not each shared by
+    /// two triangles). On a surface
     /// of curvature κ that bends toward the point the distance falls below
     /// its tangent by κt²/2 over a step t; this allows twice that.
     pub(crate) fn concave_bend(&self, length: f64) -> f64 {
@@ -519,5 +538,23 @@ mod tests {
         if let Ok(tool) = RigidTool::new(dented_cube(h, true), pose) {
             assert!(tool.concave_bend(1e-9) >= 1.0);
         }
+        // Two cubes apart, each convex: their union is not.
+        let ToolShape::TriMesh {
+            mut vertices,
+            mut indices,
+        } = dented_cube(0.0, false)
+        else {
+            unreachable!()
+        };
+        let n = vertices.len() as u32;
+        vertices.extend(
+            vertices
+                .clone()
+                .iter()
+                .map(|v| v + Vec3::new(3e-3, 0.0, 0.0)),
+        );
+        indices.extend(indices.clone().iter().map(|t| t.map(|i| i + n)));
+        let two = RigidTool::new(ToolShape::TriMesh { vertices, indices }, pose).unwrap();
+        assert!(two.concave_bend(1e-9) >= 1.0);
     }
 }
