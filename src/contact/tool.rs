@@ -323,9 +323,9 @@ impl RigidTool {
     /// from the tool's concave edges: the curvature times the length, at
     /// most the largest turn of the normal (0 for a convex tool; no bound for
     /// a mesh of more than one piece or whose edges are not each shared by
-    /// two triangles). On a surface
-    /// of curvature κ that bends toward the point the distance falls below
-    /// its tangent by κt²/2 over a step t; this allows twice that.
+    /// two triangles). On a surface of curvature κ that bends toward the
+    /// point the distance falls below its tangent by κt²/2 over a step t;
+    /// this allows twice that.
     pub(crate) fn concave_bend(&self, length: f64) -> f64 {
         let Concavity { turn, curvature } = self.concave;
         if turn == 0.0 {

@@ -735,10 +735,10 @@ mod tests {
     use proptest::prelude::*;
     use proptest::test_runner::{Config, RngSeed};
 
-    /// A convex tool of size about 1 mm centred at `centre` and turned by
-    /// `angles`: a sphere, a box, or a box's triangle mesh (as parry
-    /// builds it), by `kind`.
-    fn convex_tool(kind: usize, centre: Vec3, angles: Vec3) -> RigidTool {
+    /// A convex tool of size about 1 mm at the origin, turned by `angles`:
+    /// a sphere, a box, or a box's triangle mesh (as parry builds it), by
+    /// `kind`.
+    fn convex_tool(kind: usize, angles: Vec3) -> RigidTool {
         let half = Vec3::new(0.6e-3, 0.4e-3, 0.25e-3);
         let shape = match kind {
             0 => ToolShape::Sphere { radius: 0.5e-3 },
@@ -753,7 +753,7 @@ mod tests {
             }
         };
         let pose = Pose::from_parts(
-            nalgebra::Translation3::from(centre),
+            nalgebra::Translation3::identity(),
             nalgebra::UnitQuaternion::from_euler_angles(angles.x, angles.y, angles.z),
         );
         RigidTool::new(shape, pose).unwrap()
@@ -781,7 +781,7 @@ mod tests {
             slack in [0.0..1e-4, 0.0..1e-4, 0.0..1e-4],
             near in -2e-4..4e-4f64,
         ) {
-            let tool = convex_tool(kind, Vec3::zeros(), angles);
+            let tool = convex_tool(kind, angles);
             let reach = near.max(0.0) + 1e-3;
             let far = |q: &Vec3| tool.proximity(q, reach).map_or(reach, |x| x.distance);
             let d = [0, 1, 2].map(|c| far(&corners[c]) - slack[c]);
@@ -806,7 +806,7 @@ mod tests {
             along in vec3(1e-3),
             steps in prop::collection::vec(1e-4..1.0f64, 1..8),
         ) {
-            let tool = convex_tool(kind, Vec3::zeros(), angles);
+            let tool = convex_tool(kind, angles);
             prop_assert_eq!(tool.concave_bend(1.0), 0.0);
             let here = tool.proximity(&x, 1.0).unwrap();
             // One of the two ways is left out (unless square to the normal).
