@@ -210,6 +210,9 @@ impl Concavity {
     /// The concave edges of a closed, outward-oriented triangle mesh of one
     /// piece.
     fn of_mesh(vertices: &[Vec3], indices: &[[u32; 3]]) -> Self {
+        if indices.is_empty() {
+            return Self::UNKNOWN;
+        }
         let mut faces_of = std::collections::HashMap::new();
         for (f, t) in indices.iter().enumerate() {
             for e in 0..3 {

@@ -693,6 +693,48 @@ proptest! {
 }
 
 proptest! {
+    #![proptest_config(seeded(FUZZ_CASES / 5))]
+
+    /// Tool meshes of random triangles over a few points (repeated corners,
+    /// open, folded, in several pieces, flat): a clear error, or a tool whose
+    /// face search (`ContactSettings::tool_faces`) over a cube pressed under
+    /// it keeps every step finite.
+    #[test]
+    fn fuzz_tool_meshes(
+        (points, triangles) in (4..10usize).prop_flat_map(|n| (
+            prop::collection::vec((0..4u8, 0..4u8, 0..4u8), n),
+            prop::collection::vec(
+                (prop::sample::subsequence((0..n as u32).collect::<Vec<_>>(), 3), any::<bool>()),
+                4..16,
+            ),
+        )),
+    ) {
+        let vertices: Vec<Vec3> = points
+            .iter()
+            .map(|&(x, y, z)| v3(f64::from(x), f64::from(y), f64::from(z)) * 2.5e-3)
+            .collect();
+        let indices: Vec<[u32; 3]> = triangles
+            .iter()
+            .map(|(t, flip)| if *flip { [t[0], t[2], t[1]] } else { [t[0], t[1], t[2]] })
+            .collect();
+        let Ok(tool) = RigidTool::new(ToolShape::TriMesh { vertices, indices }, Pose::identity()) else {
+            return Ok(());
+        };
+        let mesh = generate::box_mesh(v3(0.0, 0.0, -0.002), v3(0.008, 0.008, 0.004), [2, 2, 2]).unwrap();
+        let body = DeformableBody::new(mesh, TissueMaterial::new(1000.0, 3e4, 0.45), BodySettings::default()).unwrap();
+        let mut scene = Scene::new(ContactSettings { tool_faces: true, ..Default::default() }).unwrap();
+        scene.add_body(body);
+        scene.add_tool(tool);
+        for _ in 0..2 {
+            match scene.step(0.01) {
+                Ok(_) => prop_assert!(scene.bodies[0].positions().iter().all(|x| x.iter().all(|c| c.is_finite()))),
+                Err(e) => { prop_assert!(!e.to_string().is_empty()); break; }
+            }
+        }
+    }
+}
+
+proptest! {
     #![proptest_config(seeded(256))]
 
     /// Nested dissection of random meshes (boxes with tetrahedra dropped, so
