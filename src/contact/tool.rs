@@ -330,12 +330,7 @@ impl RigidTool {
     /// point the distance falls below its tangent by κt²/2 over a step t;
     /// this allows twice that.
     pub(crate) fn concave_bend(&self, length: f64) -> f64 {
-        let Concavity { turn, curvature } = self.concave;
-        if turn == 0.0 {
-            0.0
-        } else {
-            turn.min(curvature * length)
-        }
+        self.concave.turn.min(self.concave.curvature * length)
     }
 
     /// Sets the Coulomb friction coefficient μ ≥ 0.
@@ -472,6 +467,16 @@ impl RigidTool {
     }
 }
 
+/// Parry's triangle mesh of a box of half extents `half` centred at the
+/// origin, as a tool shape (for tests).
+#[cfg(test)]
+pub(crate) fn box_trimesh(half: Vec3) -> ToolShape {
+    let cuboid = parry3d_f64::shape::Cuboid::new(PVec::new(half.x, half.y, half.z));
+    let (corners, indices) = cuboid.to_trimesh();
+    let vertices = corners.iter().map(|c| Vec3::new(c.x, c.y, c.z)).collect();
+    ToolShape::TriMesh { vertices, indices }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -481,9 +486,13 @@ mod tests {
     /// `open` the cube with one of its triangles left out.
     fn dented_cube(h: f64, open: bool) -> ToolShape {
         let s = 1e-3;
-        let cuboid = parry3d_f64::shape::Cuboid::new(PVec::new(s, s, s));
-        let (corners, triangles) = cuboid.to_trimesh();
-        let mut vertices: Vec<Vec3> = corners.iter().map(|c| Vec3::new(c.x, c.y, c.z)).collect();
+        let ToolShape::TriMesh {
+            mut vertices,
+            indices: triangles,
+        } = box_trimesh(Vec3::new(s, s, s))
+        else {
+            unreachable!()
+        };
         let top = |i: u32| vertices[i as usize].z > 0.0;
         let mut indices: Vec<[u32; 3]> = triangles
             .iter()

@@ -743,14 +743,7 @@ mod tests {
         let shape = match kind {
             0 => ToolShape::Sphere { radius: 0.5e-3 },
             1 => ToolShape::Box { half_extents: half },
-            _ => {
-                let cuboid = parry3d_f64::shape::Cuboid::new(parry3d_f64::math::Vector::new(
-                    half.x, half.y, half.z,
-                ));
-                let (corners, indices) = cuboid.to_trimesh();
-                let vertices = corners.iter().map(|c| Vec3::new(c.x, c.y, c.z)).collect();
-                ToolShape::TriMesh { vertices, indices }
-            }
+            _ => crate::contact::tool::box_trimesh(half),
         };
         let pose = Pose::from_parts(
             nalgebra::Translation3::identity(),
