@@ -10,22 +10,21 @@ use crate::contact::ContactSettings;
 /// The GPU path needs the `gpu` feature and a render device (`RenderPlugin`);
 /// otherwise every mode builds on the CPU.
 ///
-/// On an NVIDIA H200 the GPU build of one body's `W` took 0.7–5.4 ms for
-/// 30–260 contacts on the 1 183-node lens, of which 0.5–1.0 ms is spent
+/// On an NVIDIA H200 the GPU build of one body's `W` took 0.72–2.81 ms for
+/// 30–260 contacts on the 1 183-node lens, of which 0.53–1.02 ms is spent
 /// waiting for the device (the rest is the host's share, which grows with
-/// the contact count). A CPU build without cached columns took 2.1–48 ms
+/// the contact count). A CPU build without cached columns took 1.9–33 ms
 /// there, so where `W` is built from scratch each step (`factor_reuse: 0`)
 /// the GPU is faster from 30 contacts (`Auto { min_rows: 90 }`). In the
 /// cataract scene the CPU path reuses the node columns the worker
-/// precomputed, and it stayed faster at every contact count (up to 413; with
-/// the faster kernels of a later evening the scene's compliance phase still
-/// took 4.6 ms at the median step on the GPU against 1.4–3.0 on the CPU):
-/// keep `Off` there. Under the scene's light, steady load (the device busy
-/// 20–40 % of the time) the driver lowers the SM clock from 1 980 to
-/// 345–600 MHz within 15 seconds, and the forward kernel then took about
-/// 1.5 ms a build against 0.34–0.40 ms in `gpu_bench`, which keeps the clock
-/// up (0.24–0.30 ms there since). The README's Benchmarks section has the
-/// numbers and the commands.
+/// precomputed, and it stayed faster at every contact count (up to 413; the
+/// compliance phase at the median step took 3.9–4.5 ms on the GPU against
+/// 1.2–1.9 on the CPU): keep `Off` there. Under the scene's light, steady
+/// load (the device busy 12–40 % of the time) the driver lowers the SM clock
+/// from 1 980 to 345–600 MHz within 15 seconds, and the forward kernel then
+/// took 1.0–1.1 ms a build against 0.24–0.30 ms in `gpu_bench`, which keeps
+/// the clock up. The README's Benchmarks section has the numbers and the
+/// commands.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Reflect)]
 pub enum GpuMode {
     /// Always on the CPU.
