@@ -105,7 +105,7 @@ use predict::Prediction;
 /// `a_problem_with_face_contacts_solves_with_their_rows_shifted`); with the
 /// shift none did, and the 289 took 632 sweeps in all instead of 7 536. A
 /// shift of 10⁻¹ let the lens slip off the blade (see "Tool contacts inside
-/// faces" in the README).
+/// faces" in docs/benchmark-log.md).
 pub const FACE_ROW_SHIFT: f64 = 3e-3;
 
 /// The contact pipeline (see the module docs). Keep one per scene; it caches

@@ -23,7 +23,7 @@ use crate::contact::ContactSettings;
 /// load (the device busy 12–40 % of the time) the driver lowers the SM clock
 /// from 1 980 to 345–600 MHz within 15 seconds, and the forward kernel then
 /// took 1.0–1.1 ms a build against 0.24–0.30 ms in `gpu_bench`, which keeps
-/// the clock up. The README's Benchmarks section has the numbers and the
+/// the clock up. docs/benchmark-log.md, "GPU", has the numbers and the
 /// commands.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Reflect)]
 pub enum GpuMode {

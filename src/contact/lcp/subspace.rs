@@ -74,7 +74,7 @@
 //! keeps the free rows and which contacts slide (a fifth of phase 2's
 //! factorizations on the lens through the hole), only `C_SA`, `D_SS` and the
 //! Schur complement are made again. Matrices are filled a column at a time
-//! (a row of `W`, contiguous writes). See the README's Benchmarks, "A split
+//! (a row of `W`, contiguous writes). See docs/benchmark-log.md, "A split
 //! Newton matrix", for what these save.
 
 use std::mem::MaybeUninit;
@@ -119,8 +119,8 @@ const PHASE2_CLASSIFICATIONS: usize = 8;
 /// gives the answer it gave before; only the retries are damped. Damping the
 /// first step as well (10⁻³ or 3·10⁻³) settled a few more recorded problems,
 /// but the cataract scene lost the lens in 6 of 120 runs with it against none
-/// of 20 without, the same hours (and about one in 50 to 150 before): see the
-/// README.
+/// of 20 without, the same hours (and about one in 50 to 150 before): see
+/// docs/benchmark-log.md, "Damped Newton steps".
 pub(super) const NEWTON_SHIFTS: [f64; 3] = [1e-10, 1e-3, 1e-2];
 
 /// How a sliding contact's tangential equations are linearized.
