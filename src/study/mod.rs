@@ -483,8 +483,9 @@ struct Budget {
 /// How long [`run_case`] lets a variant run step, as a multiple of the
 /// reference run's stepping time (the steps' wall time, summed, pacing idle
 /// time excluded). The reference factorizes every step and solves its LCPs
-/// to 10⁻¹⁰; no standard variant has taken more than 1.2 times as long per
-/// step as its rerun (`exact`) in the study kept in `docs/accuracy-study`. A
+/// to 10⁻¹⁰; no standard variant has taken more than 2.8 times as long per
+/// step as its rerun (`exact`) in the study kept in `docs/accuracy-study`
+/// (`rest_precomputed`, 109 ms against 39.6). A
 /// variant whose approximation leaves its contact problems unsolvable to
 /// their tolerance (`rest_precomputed` on the paper's experiment, once in
 /// about twenty full studies, whose LCP solves then ran to their sweep limit
