@@ -110,8 +110,9 @@ pub struct ContactSettings {
     /// stability suite's thin rod drawn across the lens keeps its faces out
     /// to twice the tolerance and the energy bound. Off by default: in the
     /// cataract jam it costs about half of the steps per second (the face
-    /// search, more passes, larger LCPs; see docs/benchmark-log.md, "Tool contacts
-    /// inside faces" and "Fewer queries in the face search"). Experimental.
+    /// search, more passes, larger LCPs; see docs/benchmark-log.md, "Tool
+    /// contacts inside faces" and "Fewer queries in the face search").
+    /// Experimental.
     pub tool_faces: bool,
 }
 

@@ -67,14 +67,15 @@ pub struct ColumnPrefetch {
 /// builds, 88 % within 6 and 94 % within 15 (about 2.4 builds a step there).
 /// Most of the columns the stepping thread still solves follow a consistency
 /// refactor, a factor made on the stepping thread with no precomputed
-/// columns (docs/benchmark-log.md, "Where the stepping thread's new columns come from").
+/// columns (docs/benchmark-log.md, "Where the stepping thread's new columns
+/// come from").
 pub const HINT_BUILDS: u32 = 6;
 
 /// Columns per tile of [`ColumnCache::precompute`]'s Gram blocks: two tiles
 /// of columns (about 20 kB each along their paths on the paper-size lens)
 /// fit a core's cache. 24 to 128 measured alike on the Fig. 3 scene, a
-/// fifth less time than column order (docs/benchmark-log.md, "Where the back-to-back
-/// `async` factor's age comes from").
+/// fifth less time than column order (docs/benchmark-log.md, "Where the
+/// back-to-back `async` factor's age comes from").
 pub(crate) const PRECOMPUTE_TILE: u32 = 32;
 
 impl ColumnPrefetch {

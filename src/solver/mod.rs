@@ -44,8 +44,8 @@
 //! the body's turn. In the cataract scene the lens takes the body's turn in
 //! 58–74 % of its steps, and over 29 runs against 19 before it the CG
 //! iterations per step fell from a median of 11.6 to 9.3 and the contact
-//! phase's consistency refreshes from 57 to 34 a run (see docs/benchmark-log.md, "One
-//! turn for the whole body").
+//! phase's consistency refreshes from 57 to 34 a run (see
+//! docs/benchmark-log.md, "One turn for the whole body").
 //!
 //! ## Half and single precision
 //! The lagged kinds (`Periodic`, `Async`, `AsyncLagged`) keep two rounded
