@@ -14,10 +14,14 @@
 //!    (otherwise: `δ_n = 0` and `λ_t = μ λ_n P(z_t)`, `P(v) = v/‖v‖`).
 //! 2. **Newton** on those equations over the free force rows, with dense
 //!    factorizations (faer, sequential), its `δ = 0` rows damped by a shift
-//!    of their diagonal ([`NEWTON_SHIFTS`]). Phase 1's system is unsymmetric:
-//!    an LU with partial pivoting. Phase 2's is split at the sliding rows
-//!    ([`Split`]): a Cholesky factorization of its symmetric `δ = 0` block and
-//!    an LU of the Schur complement on the sliding rows (two per sliding
+//!    of their diagonal ([`NEWTON_SHIFTS`]). Phase 1's system is the
+//!    symmetric `δ = 0` block plus one column per sliding contact: a Cholesky
+//!    factorization of the block and an LU of the sliding contacts' few rows
+//!    ([`solve_phase1`]), with an LU of the whole where more than a quarter
+//!    of the free rows slide or the Cholesky fails. Phase 2's is split at the
+//!    sliding rows ([`Split`]): a Cholesky factorization of its symmetric
+//!    `δ = 0` block (phase 1's last one, where the rows are the same) and an
+//!    LU of the Schur complement on the sliding rows (two per sliding
 //!    contact), with an LU of the whole where the Cholesky fails.
 //!    - *Phase 1*, until the free rows stop changing: a sliding contact is
 //!      put on the cone's rim in the direction of `z_t` and only its normal
@@ -75,7 +79,12 @@
 //! factorizations on the lens through the hole), only `C_SA`, `D_SS` and the
 //! Schur complement are made again. Matrices are filled a column at a time
 //! (a row of `W`, contiguous writes). See docs/benchmark-log.md, "A split
-//! Newton matrix", for what these save.
+//! Newton matrix", for what these save. Phase 1 by Cholesky, and phase 2's
+//! first split taking its factor, cut the LCP's time over the last 50 steps
+//! of the lens through the hole (430 contacts on average) from 15.3–16.1 to
+//! 13.7–14.4 ms (the deterministic `AsyncLagged { lag: 2 }`, three runs
+//! each, alternating), with the same sweeps; on 392 recorded cataract jam
+//! problems the total time to 10⁻⁶ went from 351–357 to 338–343 ms.
 
 use std::mem::MaybeUninit;
 
@@ -276,6 +285,15 @@ struct Split {
     kx_valid: bool,
     kx_rows: Vec<usize>,
     kx_shift: f64,
+    /// Whether `k` holds the Cholesky factor of `W` over the rows `k_rows`
+    /// with the shift `k_shift` (made by phase 1's step, [`solve_phase1`], or
+    /// by a split): phase 2's first split on the same `A` rows takes it
+    /// instead of factoring `K` again.
+    k_valid: bool,
+    k_rows: Vec<usize>,
+    k_shift: f64,
+    /// Positions (in `free`) of phase 1's sliding normal rows.
+    slide_pos: Vec<usize>,
     /// `K`, then its Cholesky factor (column-major, `|A|²`, lower triangle).
     k: Vec<f64>,
     /// `W_AS`, then `X = K⁻¹ W_AS` (column-major, `|A| × |S|`).
@@ -318,6 +336,8 @@ impl Split {
             &mut self.pos_s,
             &mut self.pos_s_prev,
             &mut self.kx_rows,
+            &mut self.k_rows,
+            &mut self.slide_pos,
             &mut self.perm,
             &mut self.perm_inv,
         ] {
@@ -348,6 +368,7 @@ impl SubspaceScratch {
         self.lu_free.clear();
         self.split.factored = false;
         self.split.kx_valid = false;
+        self.split.k_valid = false;
     }
 
     /// Sets the next step's shift (one of [`NEWTON_SHIFTS`]); an LU kept for
@@ -814,6 +835,9 @@ fn solve_newton(
     if full && solve_split(w, m, s, reuse) {
         return s.rhs.iter().all(|v| v.is_finite()).then_some(());
     }
+    if !full && !reuse && solve_phase1(w, m, s) {
+        return s.rhs.iter().all(|v| v.is_finite()).then_some(());
+    }
     newton_rhs(s, full);
     if !reuse {
         s.mat.clear();
@@ -919,22 +943,36 @@ fn solve_split(w: &[f64], m: usize, s: &mut SubspaceScratch, reuse: bool) -> boo
             && sp.pos_s == sp.pos_s_prev;
         if !keep {
             sp.kx_valid = false;
-            sp.k.clear();
-            sp.k.resize(na * na, 0.0);
+            // The Cholesky factor of `K` that phase 1's last step made on
+            // these rows (phase 1 ends where its active set repeats, and its
+            // free rows are the `A` rows), if it is there.
+            let k_ready = sp.k_valid
+                && sp.k_shift == s.shift
+                && sp.k_rows.len() == na
+                && sp
+                    .pos_a
+                    .iter()
+                    .zip(&sp.k_rows)
+                    .all(|(&pi, &r)| s.free[pi] == r);
+            if !k_ready {
+                sp.k_valid = false;
+                sp.k.clear();
+                sp.k.resize(na * na, 0.0);
+                // A column at a time: column c of W over the A rows is row c
+                // of W (W is symmetric). The Cholesky factorization reads the
+                // lower triangle only.
+                for (ja, &pj) in sp.pos_a.iter().enumerate() {
+                    let wc = &w[s.free[pj] * m..(s.free[pj] + 1) * m];
+                    let col = &mut sp.k[ja * na + ja..(ja + 1) * na];
+                    for (c, &pi) in col.iter_mut().zip(&sp.pos_a[ja..]) {
+                        *c = wc[s.free[pi]];
+                    }
+                    // The diagonal shifted: a damped step (see NEWTON_SHIFTS).
+                    col[0] *= 1.0 + s.shift;
+                }
+            }
             sp.x.clear();
             sp.x.resize(na * ns, 0.0);
-            // A column at a time: column c of W over the A rows is row c of
-            // W (W is symmetric). The Cholesky factorization reads the lower
-            // triangle only.
-            for (ja, &pj) in sp.pos_a.iter().enumerate() {
-                let wc = &w[s.free[pj] * m..(s.free[pj] + 1) * m];
-                let col = &mut sp.k[ja * na + ja..(ja + 1) * na];
-                for (c, &pi) in col.iter_mut().zip(&sp.pos_a[ja..]) {
-                    *c = wc[s.free[pi]];
-                }
-                // The diagonal shifted: a damped step (see NEWTON_SHIFTS).
-                col[0] *= 1.0 + s.shift;
-            }
             for (js, &pj) in sp.pos_s.iter().enumerate() {
                 let wc = &w[s.free[pj] * m..(s.free[pj] + 1) * m];
                 let col = &mut sp.x[js * na..(js + 1) * na];
@@ -942,17 +980,23 @@ fn solve_split(w: &[f64], m: usize, s: &mut SubspaceScratch, reuse: bool) -> boo
                     *c = wc[s.free[pi]];
                 }
             }
-            let chol = faer::linalg::cholesky::llt::factor::cholesky_in_place(
-                MatMut::from_column_major_slice_mut(&mut sp.k, na, na),
-                Default::default(),
-                Par::Seq,
-                MemStack::new(&mut s.mem),
-                Default::default(),
-            );
-            if chol.is_err() {
-                return false;
+            if !k_ready {
+                let chol = faer::linalg::cholesky::llt::factor::cholesky_in_place(
+                    MatMut::from_column_major_slice_mut(&mut sp.k, na, na),
+                    Default::default(),
+                    Par::Seq,
+                    MemStack::new(&mut s.mem),
+                    Default::default(),
+                );
+                if chol.is_err() {
+                    return false;
+                }
+                s.factorizations += 1;
+                sp.k_valid = true;
+                sp.k_rows.clear();
+                sp.k_rows.extend(sp.pos_a.iter().map(|&pi| s.free[pi]));
+                sp.k_shift = s.shift;
             }
-            s.factorizations += 1;
             if ns > 0 {
                 faer::linalg::cholesky::llt::solve::solve_in_place(
                     faer::MatRef::from_column_major_slice(&sp.k, na, na),
@@ -1067,9 +1111,181 @@ fn solve_split(w: &[f64], m: usize, s: &mut SubspaceScratch, reuse: bool) -> boo
         // Not as good as one LU of the whole would be: that instead.
         s.split.factored = false;
         s.split.kx_valid = false;
+        s.split.k_valid = false;
         return false;
     }
     std::mem::swap(&mut s.rhs, &mut s.split.step);
+    true
+}
+
+/// Phase 1's Newton step by Cholesky, into `s.rhs`: its matrix is
+/// `K + U Eᵀ`, `K = W_FF + ε diag W_FF` over the free rows (symmetric
+/// positive definite, as in [`Split`]) and one column `U_j = μ (P₀ W_{F,t₀} +
+/// P₁ W_{F,t₁})` per sliding contact, added in its normal row's column `j`
+/// (`E` picks those columns): the tangential force that follows the normal
+/// force. By the Sherman–Morrison–Woodbury identity, with `Z = K⁻¹ U` and
+/// `y = K⁻¹ b`, the step is `y − Z (I + Eᵀ Z)⁻¹ Eᵀ y`: a Cholesky factor
+/// (`|F|³/3`), `2 |F|² |S|` for `Z` and an LU of `|S|` rows, against
+/// `2/3 |F|³` for the LU of the whole, where `|S| ≤ |F| / 4`. Phase 1 ends
+/// where its free rows repeat, and they are then phase 2's `A` rows: the
+/// first split takes this `K` (see [`Split::k_valid`]). Returns false where it
+/// did not solve (too many sliding contacts, `K` not positive definite in
+/// floating point, a backward error above [`SPLIT_BACKWARD_ERROR`], or
+/// [`Split::lu_only`]); the caller then solves by one LU. On the accuracy
+/// study's lens through the hole phase 1's free rows are 450–530 with 40–80
+/// sliding contacts.
+fn solve_phase1(w: &[f64], m: usize, s: &mut SubspaceScratch) -> bool {
+    if s.split.lu_only {
+        return false;
+    }
+    let n = s.free.len();
+    let sp = &mut s.split;
+    sp.slide_pos.clear();
+    sp.slide_pos
+        .extend((0..n).filter(|&j| s.slide[s.free[j]].is_some()));
+    let ns = sp.slide_pos.len();
+    if 4 * ns > n {
+        return false;
+    }
+    // The split's factors are overwritten below.
+    sp.factored = false;
+    sp.kx_valid = false;
+    sp.k_valid = false;
+    sp.k.clear();
+    sp.k.resize(n * n, 0.0);
+    for (j, &cj) in s.free.iter().enumerate() {
+        let wc = &w[cj * m..(cj + 1) * m];
+        let col = &mut sp.k[j * n + j..(j + 1) * n];
+        for (c, &ri) in col.iter_mut().zip(&s.free[j..]) {
+            *c = wc[ri];
+        }
+        // The diagonal shifted: a damped step (see NEWTON_SHIFTS).
+        col[0] *= 1.0 + s.shift;
+    }
+    sp.x.clear();
+    sp.x.resize(n * ns, 0.0);
+    for (l, &j) in sp.slide_pos.iter().enumerate() {
+        let cj = s.free[j];
+        let Some(Slide { p, mu, .. }) = s.slide[cj] else {
+            unreachable!("a position of a sliding row")
+        };
+        let (w1, w2) = (
+            &w[(cj + 1) * m..(cj + 2) * m],
+            &w[(cj + 2) * m..(cj + 3) * m],
+        );
+        for (c, &ri) in sp.x[l * n..(l + 1) * n].iter_mut().zip(&s.free) {
+            *c = mu * (p[0] * w1[ri] + p[1] * w2[ri]);
+        }
+    }
+    let chol = faer::linalg::cholesky::llt::factor::cholesky_in_place(
+        MatMut::from_column_major_slice_mut(&mut sp.k, n, n),
+        Default::default(),
+        Par::Seq,
+        MemStack::new(&mut s.mem),
+        Default::default(),
+    );
+    if chol.is_err() {
+        return false;
+    }
+    s.factorizations += 1;
+    sp.k_valid = true;
+    sp.k_rows.clone_from(&s.free);
+    sp.k_shift = s.shift;
+    newton_rhs(s, false);
+    let sp = &mut s.split;
+    let l = faer::MatRef::from_column_major_slice(&sp.k, n, n);
+    sp.ya.clone_from(&s.rhs);
+    faer::linalg::cholesky::llt::solve::solve_in_place(
+        l,
+        MatMut::from_column_major_slice_mut(&mut sp.ya, n, 1),
+        Par::Seq,
+        MemStack::new(&mut s.mem),
+    );
+    if ns > 0 {
+        faer::linalg::cholesky::llt::solve::solve_in_place(
+            l,
+            MatMut::from_column_major_slice_mut(&mut sp.x, n, ns),
+            Par::Seq,
+            MemStack::new(&mut s.mem),
+        );
+        // I + Eᵀ Z, its LU, and (I + Eᵀ Z)⁻¹ Eᵀ y.
+        sp.s.clear();
+        sp.s.resize(ns * ns, 0.0);
+        for c in 0..ns {
+            for (r, &j) in sp.slide_pos.iter().enumerate() {
+                sp.s[c * ns + r] = sp.x[c * n + j];
+            }
+            sp.s[c * ns + c] += 1.0;
+        }
+        sp.perm.clear();
+        sp.perm.resize(ns, 0);
+        sp.perm_inv.clear();
+        sp.perm_inv.resize(ns, 0);
+        lu::factor::lu_in_place(
+            MatMut::from_column_major_slice_mut(&mut sp.s, ns, ns),
+            &mut sp.perm,
+            &mut sp.perm_inv,
+            Par::Seq,
+            MemStack::new(&mut s.mem),
+            Default::default(),
+        );
+        sp.ys.clear();
+        sp.ys.extend(sp.slide_pos.iter().map(|&j| sp.ya[j]));
+        let perm = PermRef::new_checked(&sp.perm, &sp.perm_inv, ns);
+        let lu = faer::MatRef::from_column_major_slice(&sp.s, ns, ns);
+        lu::solve::solve_in_place(
+            lu,
+            lu,
+            perm,
+            MatMut::from_column_major_slice_mut(&mut sp.ys, ns, 1),
+            Par::Seq,
+            MemStack::new(&mut s.mem),
+        );
+        faer::linalg::matmul::matmul(
+            MatMut::from_column_major_slice_mut(&mut sp.ya, n, 1),
+            faer::Accum::Add,
+            faer::MatRef::from_column_major_slice(&sp.x, n, ns),
+            faer::MatRef::from_column_major_slice(&sp.ys, ns, 1),
+            -1.0,
+            Par::Seq,
+        );
+    }
+    // The backward error for the whole matrix, its columns made again from
+    // `W` (`step` takes `M Δλ`, `ys` the rows' absolute sums).
+    sp.step.clear();
+    sp.step.resize(n, 0.0);
+    sp.ys.clear();
+    sp.ys.resize(n, 0.0);
+    for (j, &cj) in s.free.iter().enumerate() {
+        let xj = sp.ya[j];
+        let wc = &w[cj * m..(cj + 1) * m];
+        let slide = s.slide[cj];
+        for (i, &ri) in s.free.iter().enumerate() {
+            let mut v = wc[ri];
+            if i == j {
+                v *= 1.0 + s.shift;
+            }
+            if let Some(Slide { p, mu, .. }) = slide {
+                v += mu * (p[0] * w[(cj + 1) * m + ri] + p[1] * w[(cj + 2) * m + ri]);
+            }
+            sp.step[i] += v * xj;
+            sp.ys[i] += v.abs();
+        }
+    }
+    let fold = |v: &[f64]| v.iter().fold(0.0f64, |a, x| a.max(x.abs()));
+    let r = sp
+        .step
+        .iter()
+        .zip(&s.rhs)
+        .fold(0.0f64, |a, (mx, b)| a.max((mx - b).abs()));
+    let scale = fold(&sp.ys) * fold(&sp.ya) + fold(&s.rhs);
+    // A NaN anywhere fails the check too.
+    if r.partial_cmp(&(SPLIT_BACKWARD_ERROR * scale))
+        .is_none_or(|o| o.is_gt())
+    {
+        return false;
+    }
+    std::mem::swap(&mut s.rhs, &mut sp.ya);
     true
 }
 
@@ -1230,6 +1446,97 @@ mod tests {
             lambda,
             delta,
         }
+    }
+
+    /// Phase 1's Newton step by Cholesky and the low-rank correction of its
+    /// sliding columns ([`solve_phase1`]) and by one LU of the whole matrix,
+    /// on random problems with sticking and sliding contacts: the same step.
+    /// Phase 2's first split on the same rows then takes phase 1's Cholesky
+    /// factor (no new factorization) and gives the step of one LU too.
+    #[test]
+    fn phase1_newton_step_by_cholesky_equals_the_whole_lu() {
+        let mut checked = 0;
+        for seed in 1..200 {
+            let Problem {
+                w,
+                rows,
+                mu,
+                mut lambda,
+                mut delta,
+            } = problem(seed, 16);
+            // Most contacts' tangential forces and slips made small, so that
+            // they stick and a few slide (phase 1 takes the LU where more
+            // than a quarter of its free rows slide).
+            for c in (0..16).filter(|c| !(c + seed as usize).is_multiple_of(5)) {
+                for r in [3 * c + 1, 3 * c + 2] {
+                    lambda[r] *= 0.05;
+                    delta[r] *= 0.05;
+                }
+            }
+            let m = delta.len();
+            let mut runs = Vec::new();
+            for lu_only in [false, true] {
+                let mut s = SubspaceScratch::default();
+                s.split.lu_only = lu_only;
+                s.set_shift(NEWTON_SHIFTS[0]);
+                s.lambda.clone_from(&lambda);
+                s.delta.clone_from(&delta);
+                s.slide.resize(m, None);
+                s.kind.resize(m, Kind::Open);
+                s.hold.resize(m, None);
+                classify(&w, &rows, &mu, &mut s, false, false);
+                let sliding = s.free.iter().filter(|&&r| s.slide[r].is_some()).count();
+                let free1 = s.free.clone();
+                solve_newton(&w, m, &mut s, false, false).unwrap();
+                // By Cholesky: one factorization, no LU after it.
+                let by_cholesky = s.split.k_valid && s.factorizations == 1;
+                let phase1 = (s.rhs.clone(), by_cholesky, sliding, s.free.len());
+                // Phase 2 on the same classes (as where phase 1 ends, its
+                // classes repeating): its `A` rows are phase 1's free rows,
+                // and it needs no factorization of its own.
+                let made = s.factorizations;
+                classify(&w, &rows, &mu, &mut s, true, true);
+                solve_newton(&w, m, &mut s, true, false).unwrap();
+                let same_rows = s.split.pos_a.iter().map(|&i| s.free[i]).eq(free1);
+                let phase2 = (s.rhs.clone(), s.factorizations == made, same_rows);
+                // Classified afresh (in phase 1 a sliding contact's forces
+                // were put on its cone): other rows, which take a factor of
+                // their own.
+                classify(&w, &rows, &mu, &mut s, true, false);
+                solve_newton(&w, m, &mut s, true, false).unwrap();
+                runs.push((phase1, phase2, s.rhs.clone()));
+            }
+            let (by_parts, whole) = (&runs[0], &runs[1]);
+            let ((p1, used, sliding, n), (p2, reused, same_rows), p3) = by_parts;
+            assert!(!whole.0.1, "seed {seed}: Cholesky used with lu_only");
+            assert!(
+                *used || 4 * sliding > *n,
+                "seed {seed}: not by Cholesky with {sliding} sliding of {n} free rows"
+            );
+            if !*used || *sliding == 0 {
+                continue;
+            }
+            checked += 1;
+            assert!(
+                *same_rows && *reused,
+                "seed {seed}: phase 2 factored phase 1's rows again"
+            );
+            for (a, b) in [(p1, &whole.0.0), (p2, &whole.1.0), (p3, &whole.2)] {
+                let scale = b.iter().fold(0.0f64, |x, v| x.max(v.abs()));
+                let err = a
+                    .iter()
+                    .zip(b)
+                    .fold(0.0f64, |x, (u, v)| x.max((u - v).abs()));
+                assert!(
+                    err <= 1e-9 * scale,
+                    "seed {seed}: the steps differ by {err:.3e} (scale {scale:.3e})"
+                );
+            }
+        }
+        assert!(
+            checked >= 20,
+            "only {checked} problems had a phase-1 step by Cholesky with sliding contacts"
+        );
     }
 
     /// Phase 2's Newton step, by blocks ([`solve_split`]) and by one LU of
