@@ -320,6 +320,41 @@ fn room<T>(v: &mut Vec<T>, cap: usize) {
 }
 
 impl Split {
+    /// Cholesky-factors `k` (`n × n`, its lower triangle filled) in place, as
+    /// the factor of `W` over the rows the caller put in `k_rows`, with the
+    /// shift `shift` ([`Self::k_valid`]). False where `K` is not positive
+    /// definite in floating point.
+    fn factor_k(&mut self, n: usize, shift: f64, mem: &mut [MaybeUninit<u8>]) -> bool {
+        let chol = faer::linalg::cholesky::llt::factor::cholesky_in_place(
+            MatMut::from_column_major_slice_mut(&mut self.k, n, n),
+            Default::default(),
+            Par::Seq,
+            MemStack::new(mem),
+            Default::default(),
+        );
+        self.k_valid = chol.is_ok();
+        self.k_shift = shift;
+        self.k_valid
+    }
+
+    /// The LU (partial pivoting) of `s`, `ns × ns`, in place: the Schur
+    /// complement of a split, or phase 1's `I + Eᵀ Z` ([`solve_phase1`]);
+    /// [`back_substitute`] solves with it.
+    fn factor_small(&mut self, ns: usize, mem: &mut [MaybeUninit<u8>]) {
+        self.perm.clear();
+        self.perm.resize(ns, 0);
+        self.perm_inv.clear();
+        self.perm_inv.resize(ns, 0);
+        lu::factor::lu_in_place(
+            MatMut::from_column_major_slice_mut(&mut self.s, ns, ns),
+            &mut self.perm,
+            &mut self.perm_inv,
+            Par::Seq,
+            MemStack::new(mem),
+            Default::default(),
+        );
+    }
+
     /// Room for the blocks of any split of `n` free rows (`|A| |S| ≤ n²/4`,
     /// `|S| ≤ 2n/3`).
     fn reserve(&mut self, n: usize) {
@@ -981,21 +1016,12 @@ fn solve_split(w: &[f64], m: usize, s: &mut SubspaceScratch, reuse: bool) -> boo
                 }
             }
             if !k_ready {
-                let chol = faer::linalg::cholesky::llt::factor::cholesky_in_place(
-                    MatMut::from_column_major_slice_mut(&mut sp.k, na, na),
-                    Default::default(),
-                    Par::Seq,
-                    MemStack::new(&mut s.mem),
-                    Default::default(),
-                );
-                if chol.is_err() {
+                sp.k_rows.clear();
+                sp.k_rows.extend(sp.pos_a.iter().map(|&pi| s.free[pi]));
+                if !sp.factor_k(na, s.shift, &mut s.mem) {
                     return false;
                 }
                 s.factorizations += 1;
-                sp.k_valid = true;
-                sp.k_rows.clear();
-                sp.k_rows.extend(sp.pos_a.iter().map(|&pi| s.free[pi]));
-                sp.k_shift = s.shift;
             }
             if ns > 0 {
                 faer::linalg::cholesky::llt::solve::solve_in_place(
@@ -1048,18 +1074,7 @@ fn solve_split(w: &[f64], m: usize, s: &mut SubspaceScratch, reuse: bool) -> boo
                 -1.0,
                 Par::Seq,
             );
-            sp.perm.clear();
-            sp.perm.resize(ns, 0);
-            sp.perm_inv.clear();
-            sp.perm_inv.resize(ns, 0);
-            lu::factor::lu_in_place(
-                MatMut::from_column_major_slice_mut(&mut sp.s, ns, ns),
-                &mut sp.perm,
-                &mut sp.perm_inv,
-                Par::Seq,
-                MemStack::new(&mut s.mem),
-                Default::default(),
-            );
+            sp.factor_small(ns, &mut s.mem);
         }
         sp.factored = true;
     }
@@ -1085,18 +1100,7 @@ fn solve_split(w: &[f64], m: usize, s: &mut SubspaceScratch, reuse: bool) -> boo
             -1.0,
             Par::Seq,
         );
-        let perm = PermRef::new_checked(&sp.perm, &sp.perm_inv, ns);
-        let lu = faer::MatRef::from_column_major_slice(&sp.s, ns, ns);
-        let ys = MatMut::from_column_major_slice_mut(&mut sp.ys, ns, 1);
-        lu::solve::solve_in_place(lu, lu, perm, ys, Par::Seq, MemStack::new(&mut s.mem));
-        faer::linalg::matmul::matmul(
-            MatMut::from_column_major_slice_mut(&mut sp.ya, na, 1),
-            faer::Accum::Add,
-            faer::MatRef::from_column_major_slice(&sp.x, na, ns),
-            faer::MatRef::from_column_major_slice(&sp.ys, ns, 1),
-            -1.0,
-            Par::Seq,
-        );
+        back_substitute(sp, na, ns, &mut s.mem);
     }
     // The step by position; `s.rhs` still holds the right-hand side.
     sp.step.clear();
@@ -1116,6 +1120,24 @@ fn solve_split(w: &[f64], m: usize, s: &mut SubspaceScratch, reuse: bool) -> boo
     }
     std::mem::swap(&mut s.rhs, &mut s.split.step);
     true
+}
+
+/// The small system's part of a step by blocks, shared by [`solve_split`]
+/// and [`solve_phase1`]: `ys ← S⁻¹ ys` by the LU in `s` (`ns` rows), then
+/// `ya ← ya − X ys` (`X` is `rows × ns`, in `x`).
+fn back_substitute(sp: &mut Split, rows: usize, ns: usize, mem: &mut [MaybeUninit<u8>]) {
+    let perm = PermRef::new_checked(&sp.perm, &sp.perm_inv, ns);
+    let lu = faer::MatRef::from_column_major_slice(&sp.s, ns, ns);
+    let ys = MatMut::from_column_major_slice_mut(&mut sp.ys, ns, 1);
+    lu::solve::solve_in_place(lu, lu, perm, ys, Par::Seq, MemStack::new(mem));
+    faer::linalg::matmul::matmul(
+        MatMut::from_column_major_slice_mut(&mut sp.ya, rows, 1),
+        faer::Accum::Add,
+        faer::MatRef::from_column_major_slice(&sp.x, rows, ns),
+        faer::MatRef::from_column_major_slice(&sp.ys, ns, 1),
+        -1.0,
+        Par::Seq,
+    );
 }
 
 /// Phase 1's Newton step by Cholesky, into `s.rhs`: its matrix is
@@ -1177,20 +1199,11 @@ fn solve_phase1(w: &[f64], m: usize, s: &mut SubspaceScratch) -> bool {
             *c = mu * (p[0] * w1[ri] + p[1] * w2[ri]);
         }
     }
-    let chol = faer::linalg::cholesky::llt::factor::cholesky_in_place(
-        MatMut::from_column_major_slice_mut(&mut sp.k, n, n),
-        Default::default(),
-        Par::Seq,
-        MemStack::new(&mut s.mem),
-        Default::default(),
-    );
-    if chol.is_err() {
+    sp.k_rows.clone_from(&s.free);
+    if !sp.factor_k(n, s.shift, &mut s.mem) {
         return false;
     }
     s.factorizations += 1;
-    sp.k_valid = true;
-    sp.k_rows.clone_from(&s.free);
-    sp.k_shift = s.shift;
     newton_rhs(s, false);
     let sp = &mut s.split;
     let l = faer::MatRef::from_column_major_slice(&sp.k, n, n);
@@ -1217,38 +1230,10 @@ fn solve_phase1(w: &[f64], m: usize, s: &mut SubspaceScratch) -> bool {
             }
             sp.s[c * ns + c] += 1.0;
         }
-        sp.perm.clear();
-        sp.perm.resize(ns, 0);
-        sp.perm_inv.clear();
-        sp.perm_inv.resize(ns, 0);
-        lu::factor::lu_in_place(
-            MatMut::from_column_major_slice_mut(&mut sp.s, ns, ns),
-            &mut sp.perm,
-            &mut sp.perm_inv,
-            Par::Seq,
-            MemStack::new(&mut s.mem),
-            Default::default(),
-        );
+        sp.factor_small(ns, &mut s.mem);
         sp.ys.clear();
         sp.ys.extend(sp.slide_pos.iter().map(|&j| sp.ya[j]));
-        let perm = PermRef::new_checked(&sp.perm, &sp.perm_inv, ns);
-        let lu = faer::MatRef::from_column_major_slice(&sp.s, ns, ns);
-        lu::solve::solve_in_place(
-            lu,
-            lu,
-            perm,
-            MatMut::from_column_major_slice_mut(&mut sp.ys, ns, 1),
-            Par::Seq,
-            MemStack::new(&mut s.mem),
-        );
-        faer::linalg::matmul::matmul(
-            MatMut::from_column_major_slice_mut(&mut sp.ya, n, 1),
-            faer::Accum::Add,
-            faer::MatRef::from_column_major_slice(&sp.x, n, ns),
-            faer::MatRef::from_column_major_slice(&sp.ys, ns, 1),
-            -1.0,
-            Par::Seq,
-        );
+        back_substitute(sp, n, ns, &mut s.mem);
     }
     // The backward error for the whole matrix, its columns made again from
     // `W` (`step` takes `M Δλ`, `ys` the rows' absolute sums).
@@ -1448,6 +1433,35 @@ mod tests {
         }
     }
 
+    /// A subspace step's scratch at the forces `lambda` with their `delta`,
+    /// the first shift, no contact classified yet; `lu_only`: every Newton
+    /// step by one LU of the whole matrix.
+    fn scratch(lambda: &[f64], delta: &[f64], lu_only: bool) -> SubspaceScratch {
+        let m = delta.len();
+        let mut s = SubspaceScratch::default();
+        s.split.lu_only = lu_only;
+        s.set_shift(NEWTON_SHIFTS[0]);
+        s.lambda.extend_from_slice(lambda);
+        s.delta.extend_from_slice(delta);
+        s.slide.resize(m, None);
+        s.kind.resize(m, Kind::Open);
+        s.hold.resize(m, None);
+        s
+    }
+
+    /// Two Newton steps agree to 10⁻⁹ of the larger entry of `b`.
+    fn assert_same_step(a: &[f64], b: &[f64], seed: u64) {
+        let scale = b.iter().fold(0.0f64, |x, v| x.max(v.abs()));
+        let err = a
+            .iter()
+            .zip(b)
+            .fold(0.0f64, |x, (u, v)| x.max((u - v).abs()));
+        assert!(
+            err <= 1e-9 * scale,
+            "seed {seed}: the steps differ by {err:.3e} (scale {scale:.3e})"
+        );
+    }
+
     /// Phase 1's Newton step by Cholesky and the low-rank correction of its
     /// sliding columns ([`solve_phase1`]) and by one LU of the whole matrix,
     /// on random problems with sticking and sliding contacts: the same step.
@@ -1457,37 +1471,24 @@ mod tests {
     fn phase1_newton_step_by_cholesky_equals_the_whole_lu() {
         let mut checked = 0;
         for seed in 1..200 {
-            let Problem {
-                w,
-                rows,
-                mu,
-                mut lambda,
-                mut delta,
-            } = problem(seed, 16);
+            let mut p = problem(seed, 16);
             // Most contacts' tangential forces and slips made small, so that
             // they stick and a few slide (phase 1 takes the LU where more
             // than a quarter of its free rows slide).
             for c in (0..16).filter(|c| !(c + seed as usize).is_multiple_of(5)) {
                 for r in [3 * c + 1, 3 * c + 2] {
-                    lambda[r] *= 0.05;
-                    delta[r] *= 0.05;
+                    p.lambda[r] *= 0.05;
+                    p.delta[r] *= 0.05;
                 }
             }
-            let m = delta.len();
+            let (w, rows, mu, m) = (&p.w, &p.rows, &p.mu, p.delta.len());
             let mut runs = Vec::new();
             for lu_only in [false, true] {
-                let mut s = SubspaceScratch::default();
-                s.split.lu_only = lu_only;
-                s.set_shift(NEWTON_SHIFTS[0]);
-                s.lambda.clone_from(&lambda);
-                s.delta.clone_from(&delta);
-                s.slide.resize(m, None);
-                s.kind.resize(m, Kind::Open);
-                s.hold.resize(m, None);
-                classify(&w, &rows, &mu, &mut s, false, false);
+                let mut s = scratch(&p.lambda, &p.delta, lu_only);
+                classify(w, rows, mu, &mut s, false, false);
                 let sliding = s.free.iter().filter(|&&r| s.slide[r].is_some()).count();
                 let free1 = s.free.clone();
-                solve_newton(&w, m, &mut s, false, false).unwrap();
+                solve_newton(w, m, &mut s, false, false).unwrap();
                 // By Cholesky: one factorization, no LU after it.
                 let by_cholesky = s.split.k_valid && s.factorizations == 1;
                 let phase1 = (s.rhs.clone(), by_cholesky, sliding, s.free.len());
@@ -1495,15 +1496,15 @@ mod tests {
                 // classes repeating): its `A` rows are phase 1's free rows,
                 // and it needs no factorization of its own.
                 let made = s.factorizations;
-                classify(&w, &rows, &mu, &mut s, true, true);
-                solve_newton(&w, m, &mut s, true, false).unwrap();
+                classify(w, rows, mu, &mut s, true, true);
+                solve_newton(w, m, &mut s, true, false).unwrap();
                 let same_rows = s.split.pos_a.iter().map(|&i| s.free[i]).eq(free1);
                 let phase2 = (s.rhs.clone(), s.factorizations == made, same_rows);
                 // Classified afresh (in phase 1 a sliding contact's forces
                 // were put on its cone): other rows, which take a factor of
                 // their own.
-                classify(&w, &rows, &mu, &mut s, true, false);
-                solve_newton(&w, m, &mut s, true, false).unwrap();
+                classify(w, rows, mu, &mut s, true, false);
+                solve_newton(w, m, &mut s, true, false).unwrap();
                 runs.push((phase1, phase2, s.rhs.clone()));
             }
             let (by_parts, whole) = (&runs[0], &runs[1]);
@@ -1522,15 +1523,7 @@ mod tests {
                 "seed {seed}: phase 2 factored phase 1's rows again"
             );
             for (a, b) in [(p1, &whole.0.0), (p2, &whole.1.0), (p3, &whole.2)] {
-                let scale = b.iter().fold(0.0f64, |x, v| x.max(v.abs()));
-                let err = a
-                    .iter()
-                    .zip(b)
-                    .fold(0.0f64, |x, (u, v)| x.max((u - v).abs()));
-                assert!(
-                    err <= 1e-9 * scale,
-                    "seed {seed}: the steps differ by {err:.3e} (scale {scale:.3e})"
-                );
+                assert_same_step(a, b, seed);
             }
         }
         assert!(
@@ -1557,14 +1550,7 @@ mod tests {
             let m = delta.len();
             let mut steps = Vec::new();
             for lu_only in [false, true] {
-                let mut s = SubspaceScratch::default();
-                s.split.lu_only = lu_only;
-                s.set_shift(NEWTON_SHIFTS[0]);
-                s.lambda.clone_from(&lambda);
-                s.delta.clone_from(&delta);
-                s.slide.resize(m, None);
-                s.kind.resize(m, Kind::Open);
-                s.hold.resize(m, None);
+                let mut s = scratch(&lambda, &delta, lu_only);
                 classify(&w, &rows, &mu, &mut s, true, false);
                 solve_newton(&w, m, &mut s, true, false).unwrap();
                 let first = s.rhs.clone();
@@ -1631,15 +1617,7 @@ mod tests {
                 (&split.1, &whole.1),
                 (&split.2, &whole.2),
             ] {
-                let scale = b.iter().fold(0.0f64, |x, v| x.max(v.abs()));
-                let err = a
-                    .iter()
-                    .zip(b)
-                    .fold(0.0f64, |x, (u, v)| x.max((u - v).abs()));
-                assert!(
-                    err <= 1e-9 * scale,
-                    "seed {seed}: the steps differ by {err:.3e} (scale {scale:.3e})"
-                );
+                assert_same_step(a, b, seed);
             }
         }
         assert!(
