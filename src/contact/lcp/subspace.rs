@@ -61,7 +61,8 @@
 //! gives it a start near the active set and corrects what a rejected step
 //! leaves.
 //!
-//! Cost per iteration: the LU of the free rows (`2/3 |F|³`) and `m` per
+//! Cost per iteration: a factorization of the free rows (`2/3 |F|³` for an
+//! LU of the whole, about half that by the Cholesky factors below) and `m` per
 //! changed force to keep `δ = δ₀ + W λ` (a Newton update changes the free
 //! rows only), against `m` per changed row for a sweep. Within phase 2, an
 //! iteration on the same active set as the last factorization reuses it (a
