@@ -575,7 +575,6 @@ fn well_formed(r: Result<TetMesh>) -> std::result::Result<(), TestCaseError> {
     Ok(())
 }
 
-/// A value in `range` eight times in nine, else a special one.
 /// Steps `scene` `steps` times: each step keeps the first body's positions
 /// finite, or ends the run with an error that says something.
 fn steps_stay_finite(scene: &mut Scene, steps: usize) -> std::result::Result<(), TestCaseError> {
@@ -596,6 +595,7 @@ fn steps_stay_finite(scene: &mut Scene, steps: usize) -> std::result::Result<(),
     Ok(())
 }
 
+/// A value in `range` eight times in nine, else a special one.
 fn param(range: std::ops::Range<f64>) -> impl Strategy<Value = f64> {
     prop_oneof![
         8 => range,

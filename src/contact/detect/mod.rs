@@ -389,8 +389,9 @@ fn near_samples(
 /// convex tool, where the normal is a (sub)gradient of a convex function,
 /// which then rises along every direction the normal does): the normal
 /// rises along it by more than that, by a margin far above round-off.
-fn cannot_go_deeper(normal: &Vec3, along: &Vec3, bend: f64) -> bool {
-    normal.dot(along) > (1e-9 + bend) * along.norm()
+/// `length` is the step's length, `along.norm()`.
+fn cannot_go_deeper(normal: &Vec3, along: &Vec3, length: f64, bend: f64) -> bool {
+    normal.dot(along) > (1e-9 + bend) * length
 }
 
 /// The corner that the barycentric point `w` is at (the other two weights
@@ -485,8 +486,9 @@ fn deepest_near(
                 let mut v = w;
                 let s = step.min(v[from]);
                 let along = (p[to] - p[from]) * s;
+                let length = along.norm();
                 if s <= 0.0
-                    || cannot_go_deeper(&prox.normal, &along, tool.concave_bend(along.norm()))
+                    || cannot_go_deeper(&prox.normal, &along, length, tool.concave_bend(length))
                 {
                     continue;
                 }
@@ -803,7 +805,7 @@ mod tests {
             prop_assert_eq!(tool.concave_bend(1.0), 0.0);
             let here = tool.proximity(&x, 1.0).unwrap();
             // One of the two ways is left out (unless square to the normal).
-            let left_out = [along, -along].map(|a| cannot_go_deeper(&here.normal, &a, 0.0));
+            let left_out = [along, -along].map(|a| cannot_go_deeper(&here.normal, &a, a.norm(), 0.0));
             prop_assert!(
                 left_out[0] != left_out[1] || here.normal.dot(&along).abs() <= 1e-9 * along.norm()
             );

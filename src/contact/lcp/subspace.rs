@@ -321,11 +321,25 @@ fn room<T>(v: &mut Vec<T>, cap: usize) {
 }
 
 impl Split {
-    /// Cholesky-factors `k` (`n × n`, its lower triangle filled) in place, as
-    /// the factor of `W` over the rows the caller put in `k_rows`, with the
-    /// shift `shift` ([`Self::k_valid`]). False where `K` is not positive
-    /// definite in floating point.
-    fn factor_k(&mut self, n: usize, shift: f64, mem: &mut [MaybeUninit<u8>]) -> bool {
+    /// `K = W_RR + shift · diag W_RR` over the rows `R` the caller put in
+    /// `k_rows`, Cholesky-factored in place into `k` ([`Self::k_valid`]).
+    /// False where `K` is not positive definite in floating point.
+    fn factor_k(&mut self, w: &[f64], m: usize, shift: f64, mem: &mut [MaybeUninit<u8>]) -> bool {
+        let n = self.k_rows.len();
+        self.k.clear();
+        self.k.resize(n * n, 0.0);
+        // A column at a time: column c of W over the rows is row c of W (W
+        // is symmetric). The Cholesky factorization reads the lower triangle
+        // only.
+        for (j, &cj) in self.k_rows.iter().enumerate() {
+            let wc = &w[cj * m..(cj + 1) * m];
+            let col = &mut self.k[j * n + j..(j + 1) * n];
+            for (c, &ri) in col.iter_mut().zip(&self.k_rows[j..]) {
+                *c = wc[ri];
+            }
+            // The diagonal shifted: a damped step (see NEWTON_SHIFTS).
+            col[0] *= 1.0 + shift;
+        }
         let chol = faer::linalg::cholesky::llt::factor::cholesky_in_place(
             MatMut::from_column_major_slice_mut(&mut self.k, n, n),
             Default::default(),
@@ -990,23 +1004,6 @@ fn solve_split(w: &[f64], m: usize, s: &mut SubspaceScratch, reuse: bool) -> boo
                     .iter()
                     .zip(&sp.k_rows)
                     .all(|(&pi, &r)| s.free[pi] == r);
-            if !k_ready {
-                sp.k_valid = false;
-                sp.k.clear();
-                sp.k.resize(na * na, 0.0);
-                // A column at a time: column c of W over the A rows is row c
-                // of W (W is symmetric). The Cholesky factorization reads the
-                // lower triangle only.
-                for (ja, &pj) in sp.pos_a.iter().enumerate() {
-                    let wc = &w[s.free[pj] * m..(s.free[pj] + 1) * m];
-                    let col = &mut sp.k[ja * na + ja..(ja + 1) * na];
-                    for (c, &pi) in col.iter_mut().zip(&sp.pos_a[ja..]) {
-                        *c = wc[s.free[pi]];
-                    }
-                    // The diagonal shifted: a damped step (see NEWTON_SHIFTS).
-                    col[0] *= 1.0 + s.shift;
-                }
-            }
             sp.x.clear();
             sp.x.resize(na * ns, 0.0);
             for (js, &pj) in sp.pos_s.iter().enumerate() {
@@ -1019,7 +1016,7 @@ fn solve_split(w: &[f64], m: usize, s: &mut SubspaceScratch, reuse: bool) -> boo
             if !k_ready {
                 sp.k_rows.clear();
                 sp.k_rows.extend(sp.pos_a.iter().map(|&pi| s.free[pi]));
-                if !sp.factor_k(na, s.shift, &mut s.mem) {
+                if !sp.factor_k(w, m, s.shift, &mut s.mem) {
                     return false;
                 }
                 s.factorizations += 1;
@@ -1112,7 +1109,7 @@ fn solve_split(w: &[f64], m: usize, s: &mut SubspaceScratch, reuse: bool) -> boo
     for (&pi, &v) in sp.pos_s.iter().zip(&sp.ys) {
         sp.step[pi] = v;
     }
-    if !reuse && backward_error(w, m, s) > SPLIT_BACKWARD_ERROR {
+    if !reuse && backward_error(w, m, s, &s.split.step, true) > SPLIT_BACKWARD_ERROR {
         // Not as good as one LU of the whole would be: that instead.
         s.split.factored = false;
         s.split.kx_valid = false;
@@ -1173,18 +1170,6 @@ fn solve_phase1(w: &[f64], m: usize, s: &mut SubspaceScratch) -> bool {
     // The split's factors are overwritten below.
     sp.factored = false;
     sp.kx_valid = false;
-    sp.k_valid = false;
-    sp.k.clear();
-    sp.k.resize(n * n, 0.0);
-    for (j, &cj) in s.free.iter().enumerate() {
-        let wc = &w[cj * m..(cj + 1) * m];
-        let col = &mut sp.k[j * n + j..(j + 1) * n];
-        for (c, &ri) in col.iter_mut().zip(&s.free[j..]) {
-            *c = wc[ri];
-        }
-        // The diagonal shifted: a damped step (see NEWTON_SHIFTS).
-        col[0] *= 1.0 + s.shift;
-    }
     sp.x.clear();
     sp.x.resize(n * ns, 0.0);
     for (l, &j) in sp.slide_pos.iter().enumerate() {
@@ -1201,7 +1186,7 @@ fn solve_phase1(w: &[f64], m: usize, s: &mut SubspaceScratch) -> bool {
         }
     }
     sp.k_rows.clone_from(&s.free);
-    if !sp.factor_k(n, s.shift, &mut s.mem) {
+    if !sp.factor_k(w, m, s.shift, &mut s.mem) {
         return false;
     }
     s.factorizations += 1;
@@ -1236,42 +1221,12 @@ fn solve_phase1(w: &[f64], m: usize, s: &mut SubspaceScratch) -> bool {
         sp.ys.extend(sp.slide_pos.iter().map(|&j| sp.ya[j]));
         back_substitute(sp, n, ns, &mut s.mem);
     }
-    // The backward error for the whole matrix, its columns made again from
-    // `W` (`step` takes `M Δλ`, `ys` the rows' absolute sums).
-    sp.step.clear();
-    sp.step.resize(n, 0.0);
-    sp.ys.clear();
-    sp.ys.resize(n, 0.0);
-    for (j, &cj) in s.free.iter().enumerate() {
-        let xj = sp.ya[j];
-        let wc = &w[cj * m..(cj + 1) * m];
-        let slide = s.slide[cj];
-        for (i, &ri) in s.free.iter().enumerate() {
-            let mut v = wc[ri];
-            if i == j {
-                v *= 1.0 + s.shift;
-            }
-            if let Some(Slide { p, mu, .. }) = slide {
-                v += mu * (p[0] * w[(cj + 1) * m + ri] + p[1] * w[(cj + 2) * m + ri]);
-            }
-            sp.step[i] += v * xj;
-            sp.ys[i] += v.abs();
-        }
-    }
-    let fold = |v: &[f64]| v.iter().fold(0.0f64, |a, x| a.max(x.abs()));
-    let r = sp
-        .step
-        .iter()
-        .zip(&s.rhs)
-        .fold(0.0f64, |a, (mx, b)| a.max((mx - b).abs()));
-    let scale = fold(&sp.ys) * fold(&sp.ya) + fold(&s.rhs);
-    // A NaN anywhere fails the check too.
-    if r.partial_cmp(&(SPLIT_BACKWARD_ERROR * scale))
-        .is_none_or(|o| o.is_gt())
-    {
+    // A NaN fails the check too.
+    let e = backward_error(w, m, s, &s.split.ya, false);
+    if e.is_nan() || e > SPLIT_BACKWARD_ERROR {
         return false;
     }
-    std::mem::swap(&mut s.rhs, &mut sp.ya);
+    std::mem::swap(&mut s.rhs, &mut s.split.ya);
     true
 }
 
@@ -1282,12 +1237,12 @@ fn solve_phase1(w: &[f64], m: usize, s: &mut SubspaceScratch) -> bool {
 /// and then the step is solved by one LU instead.
 const SPLIT_BACKWARD_ERROR: f64 = 1e-10;
 
-/// The normwise backward error of the split's step `s.split.step` for the
-/// whole phase-2 Newton matrix (as `solve_newton` builds it) and the
-/// right-hand side in `s.rhs`: one product with the matrix's rows, a small
-/// fraction of a factorization.
-fn backward_error(w: &[f64], m: usize, s: &SubspaceScratch) -> f64 {
-    let (x, b) = (&s.split.step, &s.rhs);
+/// The normwise backward error of the step `x` (by position in `s.free`)
+/// for the whole Newton matrix of phase 2 (`full`) or phase 1, as
+/// `solve_newton` builds it, and the right-hand side in `s.rhs`: one product
+/// with the matrix's rows, a small fraction of a factorization.
+fn backward_error(w: &[f64], m: usize, s: &SubspaceScratch, x: &[f64], full: bool) -> f64 {
+    let b = &s.rhs;
     let (mut r_max, mut m_max) = (0.0f64, 0.0f64);
     let x_max = x.iter().fold(0.0f64, |a, v| a.max(v.abs()));
     let b_max = b.iter().fold(0.0f64, |a, v| a.max(v.abs()));
@@ -1295,17 +1250,21 @@ fn backward_error(w: &[f64], m: usize, s: &SubspaceScratch) -> f64 {
     let n = s.free.len();
     while i < n {
         let r = s.free[i];
-        // δ_r = 0: row r of W over the free columns, its diagonal shifted.
+        // δ_r = 0: row r of W over the free columns, its diagonal shifted;
+        // in phase 1 a sliding normal's column carries its tangential force.
         let row = &w[r * m..(r + 1) * m];
         let (mut sum, mut abs) = (0.0, 0.0);
         for (j, &cj) in s.free.iter().enumerate() {
-            let v = row[cj] * if j == i { 1.0 + s.shift } else { 1.0 };
+            let mut v = row[cj] * if j == i { 1.0 + s.shift } else { 1.0 };
+            if let (false, Some(Slide { p, mu, .. })) = (full, s.slide[cj]) {
+                v += mu * (p[0] * w[(cj + 1) * m + r] + p[1] * w[(cj + 2) * m + r]);
+            }
             sum += v * x[j];
             abs += v.abs();
         }
         r_max = r_max.max((sum - b[i]).abs());
         m_max = m_max.max(abs);
-        let Some(sl) = s.slide[r] else {
+        let Some(sl) = s.slide[r].filter(|_| full) else {
             i += 1;
             continue;
         };
@@ -1560,12 +1519,12 @@ mod tests {
                     // the step it solved, far above its bound for one entry
                     // off by a thousandth of the step.
                     std::mem::swap(&mut s.rhs, &mut s.split.step);
-                    let e = backward_error(&w, m, &s);
+                    let e = backward_error(&w, m, &s, &s.split.step, true);
                     assert!(e <= 1e-13, "seed {seed}: backward error {e:.3e}");
                     let big = first.iter().fold(0.0f64, |a, v| a.max(v.abs()));
                     let last = first.len() - 1;
                     s.split.step[last] += 1e-3 * big;
-                    let e = backward_error(&w, m, &s);
+                    let e = backward_error(&w, m, &s, &s.split.step, true);
                     assert!(
                         e > SPLIT_BACKWARD_ERROR,
                         "seed {seed}: backward error {e:.3e} of a wrong step"
