@@ -892,30 +892,7 @@ fn solve_newton(
     if !reuse {
         s.mat.clear();
         s.mat.resize(n * n, 0.0);
-        delta_columns(w, m, s, full);
-        // The tangential rows i+1, i+2 of a sliding contact (free rows r+1,
-        // r+2, pushed with its normal row r), see `Slide::row`.
-        let mut i = 0;
-        while i < n {
-            let r = s.free[i];
-            let Some(sl) = s.slide.get(r).copied().flatten().filter(|_| full) else {
-                i += 1;
-                continue;
-            };
-            let (w1, w2) = (&w[(r + 1) * m..(r + 2) * m], &w[(r + 2) * m..(r + 3) * m]);
-            for k in 0..2 {
-                let ik = i + 1 + k;
-                let row = sl.row(k);
-                for (j, &cj) in s.free.iter().enumerate() {
-                    s.mat[j * n + ik] = row.w(w1, w2, cj);
-                }
-                // The λ part: columns i (λ_n), i+1, i+2 (λ_t).
-                for (l, v) in row.own.iter().enumerate() {
-                    s.mat[(i + l) * n + ik] += v;
-                }
-            }
-            i += 3;
-        }
+        newton_matrix(w, m, s, full);
         s.factorizations += 1;
         s.perm.clear();
         s.perm.resize(n, 0);
@@ -1289,6 +1266,37 @@ fn backward_error(w: &[f64], m: usize, s: &SubspaceScratch, x: &[f64], full: boo
     if scale > 0.0 { r_max / scale } else { 0.0 }
 }
 
+/// The whole Newton matrix of phase 2 (`full`) or phase 1 over the free
+/// rows into `s.mat` (column-major, `n × n`, zeroed by the caller): the
+/// equations `δ_r = 0` ([`delta_columns`]), then the tangential rows i+1,
+/// i+2 of a sliding contact (free rows r+1, r+2, pushed with its normal row
+/// r), see [`Slide::row`].
+fn newton_matrix(w: &[f64], m: usize, s: &mut SubspaceScratch, full: bool) {
+    let n = s.free.len();
+    delta_columns(w, m, s, full);
+    let mut i = 0;
+    while i < n {
+        let r = s.free[i];
+        let Some(sl) = s.slide.get(r).copied().flatten().filter(|_| full) else {
+            i += 1;
+            continue;
+        };
+        let (w1, w2) = (&w[(r + 1) * m..(r + 2) * m], &w[(r + 2) * m..(r + 3) * m]);
+        for k in 0..2 {
+            let ik = i + 1 + k;
+            let row = sl.row(k);
+            for (j, &cj) in s.free.iter().enumerate() {
+                s.mat[j * n + ik] = row.w(w1, w2, cj);
+            }
+            // The λ part: columns i (λ_n), i+1, i+2 (λ_t).
+            for (l, v) in row.own.iter().enumerate() {
+                s.mat[(i + l) * n + ik] += v;
+            }
+        }
+        i += 3;
+    }
+}
+
 /// The equations `δ_r = 0` of the Newton matrix: for each free row `r_i`,
 /// row `r_i` of `W` over the free columns, where in phase 1 (`!full`) the
 /// column of a sliding normal also carries its tangential force (`μ P` along
@@ -1489,6 +1497,59 @@ mod tests {
         assert!(
             checked >= 20,
             "only {checked} problems had a phase-1 step by Cholesky with sliding contacts"
+        );
+    }
+
+    /// The backward error of a step as [`backward_error`] works it out from
+    /// `W`'s rows, against the same figure from the whole Newton matrix as
+    /// the LU's path builds it ([`newton_matrix`]), in both phases on
+    /// problems with sticking and sliding contacts.
+    #[test]
+    fn backward_error_from_w_equals_the_whole_matrix() {
+        let mut sliding = [0; 2];
+        // `W` scaled down too, so that a sliding contact's own entries in its
+        // tangential rows weigh in `‖M‖∞`.
+        for (seed, scale) in (1..60).flat_map(|seed| [(seed, 1.0), (seed, 1e-3)]) {
+            let mut p = problem(seed, 16);
+            p.w.iter_mut().for_each(|v| *v *= scale);
+            for c in (0..16).filter(|c| !(c + seed as usize).is_multiple_of(4)) {
+                for r in [3 * c + 1, 3 * c + 2] {
+                    p.lambda[r] *= 0.05;
+                    p.delta[r] *= 0.05;
+                }
+            }
+            let (w, rows, mu, m) = (&p.w, &p.rows, &p.mu, p.delta.len());
+            for full in [false, true] {
+                let mut s = scratch(&p.lambda, &p.delta, false);
+                s.shift = NEWTON_SHIFTS[1];
+                classify(w, rows, mu, &mut s, full, false);
+                let n = s.free.len();
+                sliding[full as usize] += s.free.iter().filter(|&&r| s.slide[r].is_some()).count();
+                // Any step and right-hand side: another problem's forces.
+                let q = problem(seed + 1000, 16);
+                let x = q.lambda[..n].to_vec();
+                s.rhs = q.delta[..n].to_vec();
+                s.mat = vec![0.0; n * n];
+                newton_matrix(w, m, &mut s, full);
+                let (mut r_max, mut m_max) = (0.0f64, 0.0f64);
+                for i in 0..n {
+                    let row = (0..n).map(|j| s.mat[j * n + i]);
+                    let ax: f64 = row.clone().zip(&x).map(|(a, x)| a * x).sum();
+                    r_max = r_max.max((ax - s.rhs[i]).abs());
+                    m_max = m_max.max(row.map(f64::abs).sum());
+                }
+                let norm = |v: &[f64]| v.iter().fold(0.0f64, |a, v| a.max(v.abs()));
+                let want = r_max / (m_max * norm(&x) + norm(&s.rhs));
+                let got = backward_error(w, m, &s, &x, full);
+                assert!(
+                    (got - want).abs() <= 1e-12 * want,
+                    "seed {seed}, scale {scale}, full {full}: {got:.15e} against {want:.15e}"
+                );
+            }
+        }
+        assert!(
+            sliding[0] >= 20 && sliding[1] >= 20,
+            "sliding contacts {sliding:?}"
         );
     }
 
