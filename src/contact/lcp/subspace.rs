@@ -252,6 +252,8 @@ pub(super) struct SubspaceScratch {
     mem: Vec<MaybeUninit<u8>>,
     /// Phase 2's Newton system split at its sliding rows ([`solve_split`]).
     split: Split,
+    /// Phase 1's sliding columns, for [`backward_error`].
+    error_slides: Vec<(usize, f64, f64)>,
 }
 
 /// Phase 2's Newton matrix in blocks: `A`, the free rows whose equation is
@@ -406,6 +408,7 @@ impl SubspaceScratch {
         room(&mut self.rhs, n);
         room(&mut self.perm, n);
         room(&mut self.perm_inv, n);
+        room(&mut self.error_slides, n);
         self.split.reserve(n);
         self.mem.resize(
             workspace(n).unaligned_bytes_required(),
@@ -1086,7 +1089,7 @@ fn solve_split(w: &[f64], m: usize, s: &mut SubspaceScratch, reuse: bool) -> boo
     for (&pi, &v) in sp.pos_s.iter().zip(&sp.ys) {
         sp.step[pi] = v;
     }
-    if !reuse && backward_error(w, m, s, &s.split.step, true) > SPLIT_BACKWARD_ERROR {
+    if !reuse && step_backward_error(w, m, s, true) > SPLIT_BACKWARD_ERROR {
         // Not as good as one LU of the whole would be: that instead.
         s.split.factored = false;
         s.split.kx_valid = false;
@@ -1199,7 +1202,7 @@ fn solve_phase1(w: &[f64], m: usize, s: &mut SubspaceScratch) -> bool {
         back_substitute(sp, n, ns, &mut s.mem);
     }
     // A NaN fails the check too.
-    let e = backward_error(w, m, s, &s.split.ya, false);
+    let e = step_backward_error(w, m, s, false);
     if e.is_nan() || e > SPLIT_BACKWARD_ERROR {
         return false;
     }
@@ -1217,27 +1220,46 @@ const SPLIT_BACKWARD_ERROR: f64 = 1e-10;
 /// The normwise backward error of the step `x` (by position in `s.free`)
 /// for the whole Newton matrix of phase 2 (`full`) or phase 1, as
 /// `solve_newton` builds it, and the right-hand side in `s.rhs`: one product
-/// with the matrix's rows, a small fraction of a factorization.
-fn backward_error(w: &[f64], m: usize, s: &SubspaceScratch, x: &[f64], full: bool) -> f64 {
+/// with the matrix's rows, a small fraction of a factorization. Each row is
+/// one pass over `W`'s entries in the free columns ([`free_dot_abs`]); the
+/// diagonal's shift, phase 1's sliding columns (listed once, in
+/// `slides`: their tangential force, by `W`'s symmetry from the same row) and
+/// phase 2's sliding rows' own entries are added to it.
+fn backward_error(
+    w: &[f64],
+    m: usize,
+    s: &SubspaceScratch,
+    x: &[f64],
+    full: bool,
+    slides: &mut Vec<(usize, f64, f64)>,
+) -> f64 {
     let b = &s.rhs;
+    let n = s.free.len();
+    slides.clear();
+    if !full {
+        slides.extend(s.free.iter().enumerate().filter_map(|(j, &cj)| {
+            let Slide { p, mu, .. } = s.slide[cj]?;
+            Some((j, mu * p[0], mu * p[1]))
+        }));
+    }
     let (mut r_max, mut m_max) = (0.0f64, 0.0f64);
     let x_max = x.iter().fold(0.0f64, |a, v| a.max(v.abs()));
     let b_max = b.iter().fold(0.0f64, |a, v| a.max(v.abs()));
     let mut i = 0;
-    let n = s.free.len();
     while i < n {
         let r = s.free[i];
         // δ_r = 0: row r of W over the free columns, its diagonal shifted;
         // in phase 1 a sliding normal's column carries its tangential force.
         let row = &w[r * m..(r + 1) * m];
-        let (mut sum, mut abs) = (0.0, 0.0);
-        for (j, &cj) in s.free.iter().enumerate() {
-            let mut v = row[cj] * if j == i { 1.0 + s.shift } else { 1.0 };
-            if let (false, Some(Slide { p, mu, .. })) = (full, s.slide[cj]) {
-                v += mu * (p[0] * w[(cj + 1) * m + r] + p[1] * w[(cj + 2) * m + r]);
-            }
-            sum += v * x[j];
-            abs += v.abs();
+        let (mut sum, mut abs) = free_dot_abs(1.0, row, 0.0, row, &s.free, x);
+        sum += s.shift * row[r] * x[i];
+        abs += s.shift * row[r].abs();
+        for &(j, a, b) in slides.iter() {
+            let cj = s.free[j];
+            let plain = row[cj] * if j == i { 1.0 + s.shift } else { 1.0 };
+            let t = a * row[cj + 1] + b * row[cj + 2];
+            sum += t * x[j];
+            abs += (plain + t).abs() - plain.abs();
         }
         r_max = r_max.max((sum - b[i]).abs());
         m_max = m_max.max(abs);
@@ -1248,14 +1270,12 @@ fn backward_error(w: &[f64], m: usize, s: &SubspaceScratch, x: &[f64], full: boo
         let (w1, w2) = (&w[(r + 1) * m..(r + 2) * m], &w[(r + 2) * m..(r + 3) * m]);
         for k in 0..2 {
             let eq = sl.row(k);
-            let (mut sum, mut abs) = (0.0, 0.0);
-            for (j, &cj) in s.free.iter().enumerate() {
-                let mut v = eq.w(w1, w2, cj);
-                if (i..i + 3).contains(&j) {
-                    v += eq.own[j - i];
-                }
-                sum += v * x[j];
-                abs += v.abs();
+            let (mut sum, mut abs) = free_dot_abs(eq.a, w1, eq.b, w2, &s.free, x);
+            // The λ part, on the contact's own three columns.
+            for (l, &own) in eq.own.iter().enumerate() {
+                let v = eq.w(w1, w2, r + l);
+                sum += own * x[i + l];
+                abs += (v + own).abs() - v.abs();
             }
             r_max = r_max.max((sum - b[i + 1 + k]).abs());
             m_max = m_max.max(abs);
@@ -1264,6 +1284,49 @@ fn backward_error(w: &[f64], m: usize, s: &SubspaceScratch, x: &[f64], full: boo
     }
     let scale = m_max * x_max + b_max;
     if scale > 0.0 { r_max / scale } else { 0.0 }
+}
+
+/// `(Σ_j v_j x_j, Σ_j |v_j|)` over the free columns `c_j`, with
+/// `v_j = α u[c_j] + β t[c_j]`: four partial sums each, so that the
+/// scattered loads, not one long chain of additions, set the pace.
+fn free_dot_abs(
+    alpha: f64,
+    u: &[f64],
+    beta: f64,
+    t: &[f64],
+    free: &[usize],
+    x: &[f64],
+) -> (f64, f64) {
+    let (mut sum, mut abs) = ([0.0f64; 4], [0.0f64; 4]);
+    let (cols, xs) = (free.chunks_exact(4), x[..free.len()].chunks_exact(4));
+    let (rest_c, rest_x) = (cols.remainder(), xs.remainder());
+    for (c, xc) in cols.zip(xs) {
+        for k in 0..4 {
+            let v = alpha * u[c[k]] + beta * t[c[k]];
+            sum[k] += v * xc[k];
+            abs[k] += v.abs();
+        }
+    }
+    let (mut s, mut a) = (
+        (sum[0] + sum[1]) + (sum[2] + sum[3]),
+        (abs[0] + abs[1]) + (abs[2] + abs[3]),
+    );
+    for (&c, &xc) in rest_c.iter().zip(rest_x) {
+        let v = alpha * u[c] + beta * t[c];
+        s += v * xc;
+        a += v.abs();
+    }
+    (s, a)
+}
+
+/// [`backward_error`] of `s.split.step` (phase 2, `full`) or of
+/// `s.split.ya` (phase 1), with the scratch's list of sliding columns.
+fn step_backward_error(w: &[f64], m: usize, s: &mut SubspaceScratch, full: bool) -> f64 {
+    let mut slides = std::mem::take(&mut s.error_slides);
+    let x = if full { &s.split.step } else { &s.split.ya };
+    let e = backward_error(w, m, s, x, full, &mut slides);
+    s.error_slides = slides;
+    e
 }
 
 /// The whole Newton matrix of phase 2 (`full`) or phase 1 over the free
@@ -1540,7 +1603,7 @@ mod tests {
                 }
                 let norm = |v: &[f64]| v.iter().fold(0.0f64, |a, v| a.max(v.abs()));
                 let want = r_max / (m_max * norm(&x) + norm(&s.rhs));
-                let got = backward_error(w, m, &s, &x, full);
+                let got = backward_error(w, m, &s, &x, full, &mut Vec::new());
                 assert!(
                     (got - want).abs() <= 1e-12 * want,
                     "seed {seed}, scale {scale}, full {full}: {got:.15e} against {want:.15e}"
@@ -1580,12 +1643,12 @@ mod tests {
                     // the step it solved, far above its bound for one entry
                     // off by a thousandth of the step.
                     std::mem::swap(&mut s.rhs, &mut s.split.step);
-                    let e = backward_error(&w, m, &s, &s.split.step, true);
+                    let e = step_backward_error(&w, m, &mut s, true);
                     assert!(e <= 1e-13, "seed {seed}: backward error {e:.3e}");
                     let big = first.iter().fold(0.0f64, |a, v| a.max(v.abs()));
                     let last = first.len() - 1;
                     s.split.step[last] += 1e-3 * big;
-                    let e = backward_error(&w, m, &s, &s.split.step, true);
+                    let e = step_backward_error(&w, m, &mut s, true);
                     assert!(
                         e > SPLIT_BACKWARD_ERROR,
                         "seed {seed}: backward error {e:.3e} of a wrong step"
