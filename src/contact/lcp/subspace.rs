@@ -328,11 +328,11 @@ impl Split {
     /// False where `K` is not positive definite in floating point.
     fn factor_k(&mut self, w: &[f64], m: usize, shift: f64, mem: &mut [MaybeUninit<u8>]) -> bool {
         let n = self.k_rows.len();
-        self.k.clear();
+        // Not zeroed: the lower triangle is filled below, and the Cholesky
+        // factorization and its solves read the lower triangle only.
         self.k.resize(n * n, 0.0);
         // A column at a time: column c of W over the rows is row c of W (W
-        // is symmetric). The Cholesky factorization reads the lower triangle
-        // only.
+        // is symmetric).
         for (j, &cj) in self.k_rows.iter().enumerate() {
             let wc = &w[cj * m..(cj + 1) * m];
             let col = &mut self.k[j * n + j..(j + 1) * n];
