@@ -243,6 +243,22 @@ fn recorded_cataract_problems_meet_signorini_and_the_cone() {
     for (name, p) in shipped() {
         for solver in SOLVERS {
             let (lambda, delta, rep) = p.solve(&settings(solver, 1e-6, 1000)).unwrap();
+            // The `δ` the solve kept (by rows of `W`, not made afresh at the
+            // end) is `δ₀ + W λ` of its answer to round-off.
+            let m = p.m();
+            let fresh: Vec<f64> = (0..m)
+                .map(|i| p.delta0[i] + (0..m).map(|j| p.w[i * m + j] * lambda[j]).sum::<f64>())
+                .collect();
+            let scale = fresh
+                .iter()
+                .chain(&p.delta0)
+                .fold(0.0f64, |a, v| a.max(v.abs()));
+            for (i, (a, b)) in fresh.iter().zip(&delta).enumerate() {
+                assert!(
+                    (a - b).abs() <= 1e-12 * scale,
+                    "{name} {solver:?}: row {i}: {a:e} {b:e}"
+                );
+            }
             // The report's residual is the shared residual of the answer.
             let r = lcp::residual(&p.w, &p.delta0, &p.rows, &p.mu, &lambda, &delta);
             assert!(

@@ -184,7 +184,12 @@ pub fn solve_until(
             }
         }
     }
-    exact_delta(w, delta0, lambda, &mut s.delta);
+    // The sweeps and the subspace steps keep `δ` by rows of `W` (a change of
+    // a force adds its row), to round-off; NNCG's momentum carries `W p`,
+    // which drifts, so its `δ` is made afresh (an `m²` pass, as at the start).
+    if nncg {
+        exact_delta(w, delta0, lambda, &mut s.delta);
+    }
     report.residual = residual(w, delta0, rows, mu, lambda, &s.delta);
     let delta = &s.delta;
     for c in 0..rows.len().saturating_sub(1) {
