@@ -893,7 +893,6 @@ fn solve_newton(
     }
     newton_rhs(s, full);
     if !reuse {
-        s.mat.clear();
         s.mat.resize(n * n, 0.0);
         newton_matrix(w, m, s, full);
         s.factorizations += 1;
@@ -1330,7 +1329,7 @@ fn step_backward_error(w: &[f64], m: usize, s: &mut SubspaceScratch, full: bool)
 }
 
 /// The whole Newton matrix of phase 2 (`full`) or phase 1 over the free
-/// rows into `s.mat` (column-major, `n × n`, zeroed by the caller): the
+/// rows into `s.mat` (column-major, `n × n`, every entry written): the
 /// equations `δ_r = 0` ([`delta_columns`]), then the tangential rows i+1,
 /// i+2 of a sliding contact (free rows r+1, r+2, pushed with its normal row
 /// r), see [`Slide::row`].
@@ -1592,7 +1591,7 @@ mod tests {
                 let q = problem(seed + 1000, 16);
                 let x = q.lambda[..n].to_vec();
                 s.rhs = q.delta[..n].to_vec();
-                s.mat = vec![0.0; n * n];
+                s.mat = vec![f64::NAN; n * n]; // every entry is written
                 newton_matrix(w, m, &mut s, full);
                 let (mut r_max, mut m_max) = (0.0f64, 0.0f64);
                 for i in 0..n {
