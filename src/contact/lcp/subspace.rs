@@ -252,8 +252,6 @@ pub(super) struct SubspaceScratch {
     mem: Vec<MaybeUninit<u8>>,
     /// Phase 2's Newton system split at its sliding rows ([`solve_split`]).
     split: Split,
-    /// Phase 1's sliding columns, for [`backward_error`].
-    error_slides: Vec<(usize, f64, f64)>,
 }
 
 /// Phase 2's Newton matrix in blocks: `A`, the free rows whose equation is
@@ -295,8 +293,10 @@ struct Split {
     k_valid: bool,
     k_rows: Vec<usize>,
     k_shift: f64,
-    /// Positions (in `free`) of phase 1's sliding normal rows.
-    slide_pos: Vec<usize>,
+    /// Phase 1's sliding normal rows ([`phase1_slides`]): each one's
+    /// position in `free` and `μ P` (the tangential force per unit normal
+    /// force its column carries).
+    slide_pos: Vec<(usize, f64, f64)>,
     /// `K`, then its Cholesky factor (column-major, `|A|²`, lower triangle).
     k: Vec<f64>,
     /// `W_AS`, then `X = K⁻¹ W_AS` (column-major, `|A| × |S|`).
@@ -383,13 +383,13 @@ impl Split {
         for v in [&mut self.ya, &mut self.ys, &mut self.step] {
             room(v, n);
         }
+        room(&mut self.slide_pos, n);
         for v in [
             &mut self.pos_a,
             &mut self.pos_s,
             &mut self.pos_s_prev,
             &mut self.kx_rows,
             &mut self.k_rows,
-            &mut self.slide_pos,
             &mut self.perm,
             &mut self.perm_inv,
         ] {
@@ -408,7 +408,6 @@ impl SubspaceScratch {
         room(&mut self.rhs, n);
         room(&mut self.perm, n);
         room(&mut self.perm_inv, n);
-        room(&mut self.error_slides, n);
         self.split.reserve(n);
         self.mem.resize(
             workspace(n).unaligned_bytes_required(),
@@ -1088,7 +1087,7 @@ fn solve_split(w: &[f64], m: usize, s: &mut SubspaceScratch, reuse: bool) -> boo
     for (&pi, &v) in sp.pos_s.iter().zip(&sp.ys) {
         sp.step[pi] = v;
     }
-    if !reuse && step_backward_error(w, m, s, true) > SPLIT_BACKWARD_ERROR {
+    if !reuse && backward_error(w, m, s, &s.split.step, true) > SPLIT_BACKWARD_ERROR {
         // Not as good as one LU of the whole would be: that instead.
         s.split.factored = false;
         s.split.kx_valid = false;
@@ -1138,10 +1137,8 @@ fn solve_phase1(w: &[f64], m: usize, s: &mut SubspaceScratch) -> bool {
         return false;
     }
     let n = s.free.len();
+    phase1_slides(s);
     let sp = &mut s.split;
-    sp.slide_pos.clear();
-    sp.slide_pos
-        .extend((0..n).filter(|&j| s.slide[s.free[j]].is_some()));
     let ns = sp.slide_pos.len();
     if 4 * ns > n {
         return false;
@@ -1151,7 +1148,7 @@ fn solve_phase1(w: &[f64], m: usize, s: &mut SubspaceScratch) -> bool {
     sp.kx_valid = false;
     sp.x.clear();
     sp.x.resize(n * ns, 0.0);
-    for (l, &j) in sp.slide_pos.iter().enumerate() {
+    for (l, &(j, ..)) in sp.slide_pos.iter().enumerate() {
         let cj = s.free[j];
         let Some(Slide { p, mu, .. }) = s.slide[cj] else {
             unreachable!("a position of a sliding row")
@@ -1190,18 +1187,18 @@ fn solve_phase1(w: &[f64], m: usize, s: &mut SubspaceScratch) -> bool {
         sp.s.clear();
         sp.s.resize(ns * ns, 0.0);
         for c in 0..ns {
-            for (r, &j) in sp.slide_pos.iter().enumerate() {
+            for (r, &(j, ..)) in sp.slide_pos.iter().enumerate() {
                 sp.s[c * ns + r] = sp.x[c * n + j];
             }
             sp.s[c * ns + c] += 1.0;
         }
         sp.factor_small(ns, &mut s.mem);
         sp.ys.clear();
-        sp.ys.extend(sp.slide_pos.iter().map(|&j| sp.ya[j]));
+        sp.ys.extend(sp.slide_pos.iter().map(|&(j, ..)| sp.ya[j]));
         back_substitute(sp, n, ns, &mut s.mem);
     }
     // A NaN fails the check too.
-    let e = step_backward_error(w, m, s, false);
+    let e = backward_error(w, m, s, &s.split.ya, false);
     if e.is_nan() || e > SPLIT_BACKWARD_ERROR {
         return false;
     }
@@ -1221,26 +1218,13 @@ const SPLIT_BACKWARD_ERROR: f64 = 1e-10;
 /// `solve_newton` builds it, and the right-hand side in `s.rhs`: one product
 /// with the matrix's rows, a small fraction of a factorization. Each row is
 /// one pass over `W`'s entries in the free columns ([`free_dot_abs`]); the
-/// diagonal's shift, phase 1's sliding columns (listed once, in
-/// `slides`: their tangential force, by `W`'s symmetry from the same row) and
+/// diagonal's shift, phase 1's sliding columns (as [`phase1_slides`] listed
+/// them: their tangential force, by `W`'s symmetry from the same row) and
 /// phase 2's sliding rows' own entries are added to it.
-fn backward_error(
-    w: &[f64],
-    m: usize,
-    s: &SubspaceScratch,
-    x: &[f64],
-    full: bool,
-    slides: &mut Vec<(usize, f64, f64)>,
-) -> f64 {
+fn backward_error(w: &[f64], m: usize, s: &SubspaceScratch, x: &[f64], full: bool) -> f64 {
     let b = &s.rhs;
     let n = s.free.len();
-    slides.clear();
-    if !full {
-        slides.extend(s.free.iter().enumerate().filter_map(|(j, &cj)| {
-            let Slide { p, mu, .. } = s.slide[cj]?;
-            Some((j, mu * p[0], mu * p[1]))
-        }));
-    }
+    let slides: &[(usize, f64, f64)] = if full { &[] } else { &s.split.slide_pos };
     let (mut r_max, mut m_max) = (0.0f64, 0.0f64);
     let x_max = x.iter().fold(0.0f64, |a, v| a.max(v.abs()));
     let b_max = b.iter().fold(0.0f64, |a, v| a.max(v.abs()));
@@ -1253,10 +1237,10 @@ fn backward_error(
         let (mut sum, mut abs) = free_dot_abs(1.0, row, 0.0, row, &s.free, x);
         sum += s.shift * row[r] * x[i];
         abs += s.shift * row[r].abs();
-        for &(j, a, b) in slides.iter() {
+        for &(j, mu_p0, mu_p1) in slides {
             let cj = s.free[j];
             let plain = row[cj] * if j == i { 1.0 + s.shift } else { 1.0 };
-            let t = a * row[cj + 1] + b * row[cj + 2];
+            let t = mu_p0 * row[cj + 1] + mu_p1 * row[cj + 2];
             sum += t * x[j];
             abs += (plain + t).abs() - plain.abs();
         }
@@ -1318,14 +1302,17 @@ fn free_dot_abs(
     (s, a)
 }
 
-/// [`backward_error`] of `s.split.step` (phase 2, `full`) or of
-/// `s.split.ya` (phase 1), with the scratch's list of sliding columns.
-fn step_backward_error(w: &[f64], m: usize, s: &mut SubspaceScratch, full: bool) -> f64 {
-    let mut slides = std::mem::take(&mut s.error_slides);
-    let x = if full { &s.split.step } else { &s.split.ya };
-    let e = backward_error(w, m, s, x, full, &mut slides);
-    s.error_slides = slides;
-    e
+/// Phase 1's sliding normal rows of the free rows into
+/// [`Split::slide_pos`], for its step ([`solve_phase1`]) and the step's
+/// [`backward_error`].
+fn phase1_slides(s: &mut SubspaceScratch) {
+    let sp = &mut s.split;
+    sp.slide_pos.clear();
+    sp.slide_pos
+        .extend(s.free.iter().enumerate().filter_map(|(j, &cj)| {
+            let Slide { p, mu, .. } = s.slide[cj]?;
+            Some((j, mu * p[0], mu * p[1]))
+        }));
 }
 
 /// The whole Newton matrix of phase 2 (`full`) or phase 1 over the free
@@ -1602,7 +1589,8 @@ mod tests {
                 }
                 let norm = |v: &[f64]| v.iter().fold(0.0f64, |a, v| a.max(v.abs()));
                 let want = r_max / (m_max * norm(&x) + norm(&s.rhs));
-                let got = backward_error(w, m, &s, &x, full, &mut Vec::new());
+                phase1_slides(&mut s);
+                let got = backward_error(w, m, &s, &x, full);
                 assert!(
                     (got - want).abs() <= 1e-12 * want,
                     "seed {seed}, scale {scale}, full {full}: {got:.15e} against {want:.15e}"
@@ -1642,12 +1630,12 @@ mod tests {
                     // the step it solved, far above its bound for one entry
                     // off by a thousandth of the step.
                     std::mem::swap(&mut s.rhs, &mut s.split.step);
-                    let e = step_backward_error(&w, m, &mut s, true);
+                    let e = backward_error(&w, m, &s, &s.split.step, true);
                     assert!(e <= 1e-13, "seed {seed}: backward error {e:.3e}");
                     let big = first.iter().fold(0.0f64, |a, v| a.max(v.abs()));
                     let last = first.len() - 1;
                     s.split.step[last] += 1e-3 * big;
-                    let e = step_backward_error(&w, m, &mut s, true);
+                    let e = backward_error(&w, m, &s, &s.split.step, true);
                     assert!(
                         e > SPLIT_BACKWARD_ERROR,
                         "seed {seed}: backward error {e:.3e} of a wrong step"
