@@ -74,6 +74,7 @@ use std::time::Instant;
 pub use bodies::{
     AsBody, AsBodyMut, AsTool, AsToolMut, Bodies, BodiesMut, NO_TOOLS, Tools, ToolsMut,
 };
+use compliance::WBlock;
 pub use compliance::{BodyCompliance, ComplianceBackend, ComplianceMode, FactorKey, JacEntry};
 pub use lcp::{LcpReport, LcpSettings, LcpSolver};
 pub use settings::ContactSettings;
@@ -453,7 +454,14 @@ impl ContactSolver {
         self.sync_bodies(&*bodies);
         self.jac.build(&self.contacts, &*bodies);
         let m = self.jac.m();
-        self.w.clear();
+        // `w` is left as it was (only grown with zeros): the first body with
+        // entries writes every entry of it or zeroes it first
+        // ([`compliance::WBlock::Unset`]).
+        let first = (0..bodies.len()).find(|&bi| !self.jac.entries[bi].is_empty());
+        if first.is_none() {
+            self.w.clear();
+        }
+        self.w.truncate(m * m);
         self.w.resize(m * m, 0.0);
         self.row_written.clear();
         self.row_written.resize(m, false);
@@ -467,8 +475,14 @@ impl ContactSolver {
             compliance.reuse_steps = self.settings.factor_reuse;
             compliance.rigid_modes = self.settings.rigid_modes;
             // The body's block of `w` is still zero when no body before it
-            // wrote any of its rows.
-            compliance.fresh_block = entries.iter().all(|e| !self.row_written[e.row as usize]);
+            // wrote any of its rows, and not even zeroed for the first.
+            compliance.block = if Some(bi) == first {
+                WBlock::Unset
+            } else if entries.iter().all(|e| !self.row_written[e.row as usize]) {
+                WBlock::Zero
+            } else {
+                WBlock::Written
+            };
             for e in entries.iter() {
                 self.row_written[e.row as usize] = true;
             }

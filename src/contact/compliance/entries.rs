@@ -91,6 +91,8 @@ pub(super) struct Scratch {
     pub(super) order: Vec<u32>,
     pub(super) t: Vec<f64>,
     pub(super) tri: Vec<f64>,
+    /// Per local row, whether a write has set it (`WBlock::Unset` in place).
+    pub(super) row_set: Vec<bool>,
 }
 
 /// Runs of entries with the same node: `(start, end)` per node.
@@ -103,4 +105,23 @@ pub(super) fn group(entries: &[JacEntry], groups: &mut Vec<(usize, usize)>) {
             s = i;
         }
     }
+}
+
+/// What a body's build of `W` may assume of `w`, set by the contact solver
+/// for one [`BodyCompliance::accumulate`].
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub(crate) enum WBlock {
+    /// Another body has written some of this body's rows: the build only
+    /// adds to `w`.
+    #[default]
+    Written,
+    /// This body's block of `w` (its rows by its rows) is zero, no body
+    /// before it having written any of its rows, so the `Factorized` build
+    /// may write it in place (see `factorized::contract`).
+    Zero,
+    /// Nothing of `w` is written or zeroed yet (the first body with
+    /// entries): the build writes every entry of `w`, or zeroes `w` first.
+    /// A `Factorized` build in place whose rows are all of `w`'s does the
+    /// former and so saves a pass over `w`; every other build the latter.
+    Unset,
 }

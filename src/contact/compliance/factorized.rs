@@ -6,7 +6,7 @@
 use std::sync::Arc;
 
 use super::deflation::Deflation;
-use super::entries::{ComplianceMode, FactorView, JacEntry, Scratch};
+use super::entries::{ComplianceMode, FactorView, JacEntry, Scratch, WBlock};
 use crate::body::DeformableBody;
 use crate::error::{Result, SoftTissueError};
 use crate::math::{Mat3, Vec3};
@@ -189,7 +189,7 @@ pub(super) fn accumulate(
     entries: &[JacEntry],
     w: &mut [f64],
     m: usize,
-    fresh: bool,
+    block: WBlock,
 ) {
     let mut cold = false;
     if cache.key != Some(view.key) {
@@ -227,14 +227,18 @@ pub(super) fn accumulate(
         // The next background factor precomputes these nodes' columns.
         prefetch.set_hint(sc.groups.iter().map(|&(s, _)| entries[s].node));
     }
-    contract(cache, sc, h2, entries, w, m, fresh);
+    contract(cache, sc, h2, entries, w, m, block);
 }
 
 /// `W += h² J G Jᵀ` of the groups in `sc.groups`, whose columns are
-/// `sc.cols` (all in `cache`). With `fresh` (this body's block of `w` is
-/// zero: no other body has written any of its rows), the pairs of groups
-/// go into that block itself and are mirrored there in place, when the
-/// body's rows are contiguous; else through `sc.tri`.
+/// `sc.cols` (all in `cache`). With a fresh block ([`WBlock::Zero`]: this
+/// body's block of `w` is zero, no other body has written any of its rows;
+/// or [`WBlock::Unset`]), the pairs of groups go into that block itself
+/// and are mirrored there in place, when the body's rows are contiguous;
+/// else through `sc.tri`. [`WBlock::Unset`]: where the body's rows are
+/// all of `w`'s and contiguous, each row is set by its first write, and
+/// the rows no write reaches set to zero, instead of `w` being zeroed
+/// first (the same sums: `0 + x` is `x`); else `w` is zeroed first.
 fn contract(
     cache: &mut ColumnCache,
     sc: &mut Scratch,
@@ -242,7 +246,7 @@ fn contract(
     entries: &[JacEntry],
     w: &mut [f64],
     m: usize,
-    fresh: bool,
+    block: WBlock,
 ) {
     // Each pair of groups once, read where the cache keeps it: with the
     // groups in the order of their column ids, group `gj` takes the Gram
@@ -266,7 +270,16 @@ fn contract(
     sc.rows.dedup();
     let k = sc.rows.len();
     let r0 = sc.rows.first().map_or(0, |&r| r as usize);
-    let in_place = fresh && k > 0 && sc.rows[k - 1] as usize - r0 == k - 1;
+    let in_place = block != WBlock::Written && k > 0 && sc.rows[k - 1] as usize - r0 == k - 1;
+    // Every entry of `w` is this block's, each row written whole below.
+    let whole = block == WBlock::Unset && in_place && k == m;
+    if block == WBlock::Unset && !whole {
+        w.fill(0.0);
+    }
+    sc.row_set.clear();
+    if whole {
+        sc.row_set.resize(k, false);
+    }
     sc.slot.clear();
     sc.slot.resize(m, u32::MAX);
     for (i, &r) in sc.rows.iter().enumerate() {
@@ -310,7 +323,12 @@ fn contract(
                 } else {
                     &mut sc.tri[l as usize * k..][..k]
                 };
-                row_update(out, [&*t0, &*t1, &*t2], e.j);
+                if whole && !sc.row_set[l as usize] {
+                    sc.row_set[l as usize] = true;
+                    row_update::<true>(out, [&*t0, &*t1, &*t2], e.j);
+                } else {
+                    row_update::<false>(out, [&*t0, &*t1, &*t2], e.j);
+                }
             }
             // Back to zero for the next group: only the rows touched.
             for &gi in &sc.order[..jj] {
@@ -325,6 +343,12 @@ fn contract(
         }
         if !in_place {
             self_block(cache, cj, h2, &entries[sj..ej], w, m);
+        }
+    }
+    if whole {
+        // The rows of the first group only (and any no write reached).
+        for (l, _) in sc.row_set.iter().enumerate().filter(|(_, set)| !**set) {
+            w[(r0 + l) * m + r0..][..k].fill(0.0);
         }
     }
     if in_place {
@@ -360,28 +384,34 @@ fn self_block(
 }
 
 /// `out[l] += t[0][l] j.x + t[1][l] j.y + t[2][l] j.z` (slices of one
-/// length), in AVX2 lanes where the CPU has them.
-fn row_update(out: &mut [f64], t: [&[f64]; 3], j: Vec3) {
+/// length), or with `SET` `out[l] =` the same sum, in AVX2 lanes where the
+/// CPU has them.
+fn row_update<const SET: bool>(out: &mut [f64], t: [&[f64]; 3], j: Vec3) {
     #[cfg(target_arch = "x86_64")]
     if crate::math::has_avx2_fma() {
         // SAFETY: the CPU supports the features the function is compiled for.
-        return unsafe { row_update_avx2(out, t, j) };
+        return unsafe { row_update_avx2::<SET>(out, t, j) };
     }
-    row_update_portable(out, t, j);
+    row_update_portable::<SET>(out, t, j);
 }
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
-fn row_update_avx2(out: &mut [f64], t: [&[f64]; 3], j: Vec3) {
-    row_update_portable(out, t, j);
+fn row_update_avx2<const SET: bool>(out: &mut [f64], t: [&[f64]; 3], j: Vec3) {
+    row_update_portable::<SET>(out, t, j);
 }
 
 #[inline(always)]
-fn row_update_portable(out: &mut [f64], t: [&[f64]; 3], j: Vec3) {
+fn row_update_portable<const SET: bool>(out: &mut [f64], t: [&[f64]; 3], j: Vec3) {
     let n = out.len();
     let (a, b, c) = (&t[0][..n], &t[1][..n], &t[2][..n]);
     for l in 0..n {
-        out[l] += a[l] * j.x + b[l] * j.y + c[l] * j.z;
+        let v = a[l] * j.x + b[l] * j.y + c[l] * j.z;
+        if SET {
+            out[l] = v;
+        } else {
+            out[l] += v;
+        }
     }
 }
 
@@ -678,7 +708,7 @@ mod tests {
                 &entries,
                 &mut w,
                 m,
-                false,
+                WBlock::Written,
             );
             let mut want = start.clone();
             for a in &entries {

@@ -87,6 +87,7 @@ use crate::solver::ldlt::LdltFactor;
 mod entries;
 
 pub use crate::solver::columns::FactorKey;
+pub(crate) use entries::WBlock;
 pub use entries::{ComplianceMode, JacEntry};
 use entries::{FactorView, Scratch, group};
 pub use rest::REST_PRECOMPUTED_MAX_NODES;
@@ -121,11 +122,8 @@ pub struct BodyCompliance {
     /// ([`crate::contact::ContactSettings::rigid_modes`]).
     pub rigid_modes: bool,
     /// Set by the contact solver for the next [`Self::accumulate`] only:
-    /// this body's block of `w` (its rows by its rows) is zero, no body
-    /// before it having written any of its rows, so the `Factorized` build
-    /// may write it in place (see `factorized::contract`). Off, the build
-    /// only adds to `w`.
-    pub(crate) fresh_block: bool,
+    /// what the build may assume of `w` (see [`WBlock`]).
+    pub(crate) block: WBlock,
     source: factorized::FactorSource,
     deflation: deflation::Deflation,
     cache: ColumnCache,
@@ -206,9 +204,37 @@ impl BodyCompliance {
         m: usize,
         backend: Option<&mut dyn ComplianceBackend>,
     ) -> Result<()> {
-        let fresh = std::mem::take(&mut self.fresh_block);
+        let block = std::mem::take(&mut self.block);
         self.cache.solves = 0;
         self.cache.gram_blocks = 0;
+        let unset = block == WBlock::Unset;
+        let result = self.build(body, prefetch, mode, h, entries, w, m, backend, block);
+        if result.is_err() && unset {
+            // Whatever the build got to, `w` is left defined.
+            w.fill(0.0);
+        }
+        result
+    }
+
+    /// [`Self::accumulate`] for the `block` it was given.
+    #[allow(clippy::too_many_arguments)]
+    fn build(
+        &mut self,
+        body: &DeformableBody,
+        prefetch: &mut ColumnPrefetch,
+        mode: ComplianceMode,
+        h: f64,
+        entries: &mut [JacEntry],
+        w: &mut [f64],
+        m: usize,
+        backend: Option<&mut dyn ComplianceBackend>,
+        mut block: WBlock,
+    ) -> Result<()> {
+        let in_place_capable = matches!(mode, ComplianceMode::Factorized | ComplianceMode::Exact);
+        if block == WBlock::Unset && (entries.is_empty() || !in_place_capable) {
+            w.fill(0.0);
+            block = WBlock::Zero;
+        }
         if entries.is_empty() {
             return Ok(());
         }
@@ -244,8 +270,13 @@ impl BodyCompliance {
                     view.key,
                     FactorKey::Preconditioner(_) | FactorKey::Snapshot(_)
                 );
-                let on_backend = mode == ComplianceMode::Factorized
-                    && shared
+                let on_backend_mode = mode == ComplianceMode::Factorized && shared;
+                if block == WBlock::Unset && on_backend_mode && backend.is_some() {
+                    // The backend adds to `w`.
+                    w.fill(0.0);
+                    block = WBlock::Zero;
+                }
+                let on_backend = on_backend_mode
                     && match backend {
                         Some(backend) => backend.accumulate(
                             body.id(),
@@ -269,7 +300,7 @@ impl BodyCompliance {
                         entries,
                         w,
                         m,
-                        fresh,
+                        block,
                     );
                 }
                 if completes(self.rigid_modes, body, mode, &view)
@@ -464,19 +495,25 @@ mod tests {
         e
     }
 
-    /// `W` (`m × m`, from zero) of one `Factorized` build of `body`'s
-    /// `entries`, with the completion on or off and the block fresh or not.
+    /// `W` (`m × m`) of one `Factorized` build of `body`'s `entries`, with
+    /// the completion on or off and the block as `block` says: from zero,
+    /// or for [`WBlock::Unset`] from NaN in every entry.
     fn factorized_w(
         body: &DeformableBody,
         rigid: bool,
-        fresh: bool,
+        block: WBlock,
         mut entries: Vec<JacEntry>,
         m: usize,
     ) -> Vec<f64> {
         let mut comp = BodyCompliance::new();
         comp.rigid_modes = rigid;
-        comp.fresh_block = fresh;
-        let mut w = vec![0.0; m * m];
+        comp.block = block;
+        let start = if block == WBlock::Unset {
+            f64::NAN
+        } else {
+            0.0
+        };
+        let mut w = vec![start; m * m];
         comp.accumulate(
             body,
             &mut ColumnPrefetch::default(),
@@ -488,7 +525,7 @@ mod tests {
             None,
         )
         .unwrap();
-        assert!(!comp.fresh_block, "the flag serves one build");
+        assert_eq!(comp.block, WBlock::Written, "the block serves one build");
         assert_eq!(comp.deflation.active, rigid);
         w
     }
@@ -504,7 +541,13 @@ mod tests {
         let k = 11;
         for rigid in [true, false] {
             let build = |row_of: &dyn Fn(usize) -> u32, m: usize| {
-                factorized_w(&body, rigid, false, spread_entries(n, k, 2, row_of), m)
+                factorized_w(
+                    &body,
+                    rigid,
+                    WBlock::Written,
+                    spread_entries(n, k, 2, row_of),
+                    m,
+                )
             };
             let packed = build(&|r| r as u32, k);
             let m = 2 * k + 1;
@@ -566,12 +609,15 @@ mod tests {
         assert!(pre.gram(0, 0)[(0, 0)] > 0.0);
     }
 
-    /// A body whose block of `W` is still zero (`fresh_block`) gets it
+    /// A body whose block of `W` is still zero ([`WBlock::Zero`]) gets it
     /// built in place: the same `W` as through `tri`, to the bit where each
     /// row has entries at one node only, and to rounding where a row's
     /// entries span nodes (the self-blocks of the nodes are then summed in
     /// another order). Rows that are not contiguous go through `tri` even
-    /// when fresh, and the flag serves one build only.
+    /// when fresh, and the block serves one build only. A build into a `w`
+    /// of NaN ([`WBlock::Unset`]) gives the in-place `W` to the bit, both
+    /// where it writes every entry itself (its rows all of `w`'s) and where
+    /// it zeroes `w` first.
     #[test]
     fn a_fresh_block_is_built_in_place_to_the_same_w() {
         let body = twisted_lens();
@@ -583,16 +629,24 @@ mod tests {
                 for spread in [false, true] {
                     let row_of = |r: usize| if spread { 2 * r as u32 } else { r as u32 };
                     let m = if spread { 2 * k } else { k };
-                    let build = |fresh: bool| {
+                    let build = |block: WBlock| {
                         factorized_w(
                             &body,
                             rigid,
-                            fresh,
+                            block,
                             spread_entries(n, k, per_row, &row_of),
                             m,
                         )
                     };
-                    let (through_tri, in_place) = (build(false), build(true));
+                    let (through_tri, in_place) = (build(WBlock::Written), build(WBlock::Zero));
+                    let unset = build(WBlock::Unset);
+                    for (i, (a, b)) in unset.iter().zip(&in_place).enumerate() {
+                        assert!(
+                            a == b,
+                            "rigid {rigid}, {per_row} per row, spread {spread}: unset \
+                             entry {i}: {a:e} against {b:e}"
+                        );
+                    }
                     let scale = through_tri.iter().fold(0.0f64, |a, v| a.max(v.abs()));
                     assert!(scale > 0.0 && in_place.iter().all(|v| v.is_finite()));
                     let tol = if per_row == 1 || spread {
