@@ -87,6 +87,9 @@ pub(super) struct Deflation {
     /// Tests: rows of `V` read from node columns' paths so far.
     #[cfg(test)]
     pub(super) path_reads: usize,
+    /// Tests: builds whose term the in-place mirror added.
+    #[cfg(test)]
+    pub(super) fused_builds: usize,
     /// Tests: [`COLUMN_PATH_SHARE`] replaced.
     pub(super) path_share: Option<f64>,
     /// Per pass: the rows this body touches, with their `U` and `V` rows.
@@ -98,7 +101,19 @@ pub(super) struct Deflation {
     /// (`soa[c k + j]`, `c < 6` for `U`, then `V`), and one row of sums.
     sorted: Vec<u32>,
     soa: Vec<f64>,
+    /// Per row of `sorted`, `(B u − G v) h²` and then `G u h²`.
+    coef: Vec<f64>,
     tmp_row: Vec<f64>,
+}
+
+/// The rank-12 term of one build, made by [`Deflation::prepare_rows`]: the
+/// rows (ascending), their `U` and `V` by component (`soa[c k + j]`, `c < 6`
+/// for `U`, then `V`) and each row's twelve coefficients (`coef[12 j..]`).
+/// Entry `(i, j)` of the term is `coef_i[..6]·u_j − coef_i[6..]·v_j`.
+pub(super) struct Rank12<'a> {
+    pub(super) rows: &'a [u32],
+    pub(super) soa: &'a [f64],
+    pub(super) coef: &'a [f64],
 }
 
 impl Deflation {
@@ -300,12 +315,8 @@ impl Deflation {
         }
     }
 
-    /// `W += h² (U B Uᵀ − V G Uᵀ − U G Vᵀ)` over the rows of `entries`.
-    ///
-    /// Row `r` gains `(B u_r − G v_r)·u_s − (G u_r)·v_s` at each column `s`:
-    /// the columns' `U` and `V` are laid out by component (in ascending row
-    /// order) so the loop over `s` runs in vector lanes, each entry summed
-    /// in the order of a 6-vector dot product.
+    /// `W += h² (U B Uᵀ − V G Uᵀ − U G Vᵀ)` over the rows of `entries`
+    /// ([`Self::prepare_rows`], then [`Self::add_prepared`]).
     /// `cache`: the node columns `W` was built from, if it was.
     pub(super) fn add_to_w(
         &mut self,
@@ -316,8 +327,27 @@ impl Deflation {
         w: &mut [f64],
         m: usize,
     ) {
+        if self.prepare_rows(view, cache, entries, h2, m).is_some() {
+            self.add_prepared(w, m);
+        }
+    }
+
+    /// The rank-12 term over the rows of `entries` (`m` rows in all), ready
+    /// to add: row `r` gains `(B u_r − G v_r)·u_s − (G u_r)·v_s` at each
+    /// column `s`. The rows' `U` and `V` are laid out by component (in
+    /// ascending row order) so a loop over `s` runs in vector lanes, and
+    /// each row's two 6-vectors of coefficients are kept by the same order.
+    /// `None` when the completion is not active.
+    pub(super) fn prepare_rows(
+        &mut self,
+        view: &FactorView<'_>,
+        cache: Option<&ColumnCache>,
+        entries: &[JacEntry],
+        h2: f64,
+        m: usize,
+    ) -> Option<Rank12<'_>> {
         if !self.active {
-            return;
+            return None;
         }
         self.rows_of(view, cache, entries, m);
         let k = self.rows.len();
@@ -326,20 +356,37 @@ impl Deflation {
         self.sorted.sort_unstable();
         self.soa.clear();
         self.soa.resize(12 * k, 0.0);
+        self.coef.clear();
+        self.coef.resize(12 * k, 0.0);
         for (j, &r) in self.sorted.iter().enumerate() {
             let s = self.slot[r as usize] as usize;
+            let (u, v) = (&self.u[s], &self.v[s]);
+            let a = (self.b * u - self.g * v) * h2;
+            let b = self.g * u * h2;
             for c in 0..6 {
-                self.soa[c * k + j] = self.u[s][c];
-                self.soa[(6 + c) * k + j] = self.v[s][c];
+                self.soa[c * k + j] = u[c];
+                self.soa[(6 + c) * k + j] = v[c];
+                self.coef[12 * j + c] = a[c];
+                self.coef[12 * j + 6 + c] = b[c];
             }
         }
+        Some(Rank12 {
+            rows: &self.sorted,
+            soa: &self.soa,
+            coef: &self.coef,
+        })
+    }
+
+    /// Adds the term [`Self::prepare_rows`] made to `w` (`m × m`).
+    pub(super) fn add_prepared(&mut self, w: &mut [f64], m: usize) {
+        let k = self.sorted.len();
         let contiguous = k > 0 && (self.sorted[k - 1] - self.sorted[0]) as usize == k - 1;
         self.tmp_row.clear();
         self.tmp_row.resize(k, 0.0);
-        for i in 0..k {
-            let a = (self.b * self.u[i] - self.g * self.v[i]) * h2;
-            let b = self.g * self.u[i] * h2;
-            let wr = &mut w[self.rows[i] as usize * m..][..m];
+        for (j, &r) in self.sorted.iter().enumerate() {
+            let a = Vector6::from_column_slice(&self.coef[12 * j..][..6]);
+            let b = Vector6::from_column_slice(&self.coef[12 * j + 6..][..6]);
+            let wr = &mut w[r as usize * m..][..m];
             if contiguous {
                 let r0 = self.sorted[0] as usize;
                 rank12_row(&a, &b, &self.soa, &mut wr[r0..r0 + k]);

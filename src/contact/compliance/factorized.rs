@@ -5,7 +5,7 @@
 
 use std::sync::Arc;
 
-use super::deflation::Deflation;
+use super::deflation::{Deflation, Rank12};
 use super::entries::{ComplianceMode, FactorView, JacEntry, Scratch, WBlock};
 use crate::body::DeformableBody;
 use crate::error::{Result, SoftTissueError};
@@ -190,6 +190,7 @@ pub(super) fn accumulate(
     w: &mut [f64],
     m: usize,
     block: WBlock,
+    deflation: Option<&mut Deflation>,
 ) {
     let mut cold = false;
     if cache.key != Some(view.key) {
@@ -227,7 +228,25 @@ pub(super) fn accumulate(
         // The next background factor precomputes these nodes' columns.
         prefetch.set_hint(sc.groups.iter().map(|&(s, _)| entries[s].node));
     }
-    contract(cache, sc, h2, entries, w, m, block);
+    match deflation {
+        // The rigid-mode completion's rank-12 term, from the same columns:
+        // added by the mirror where `W` is built in place, else after.
+        Some(d) => {
+            let rank = d.prepare_rows(view, Some(cache), entries, h2, m);
+            let fused = contract(cache, sc, h2, entries, w, m, block, rank.as_ref());
+            if fused {
+                #[cfg(test)]
+                {
+                    d.fused_builds += 1;
+                }
+            } else {
+                d.add_prepared(w, m);
+            }
+        }
+        None => {
+            contract(cache, sc, h2, entries, w, m, block, None);
+        }
+    }
 }
 
 /// `W += h² J G Jᵀ` of the groups in `sc.groups`, whose columns are
@@ -239,6 +258,12 @@ pub(super) fn accumulate(
 /// all of `w`'s and contiguous, each row is set by its first write, and
 /// the rows no write reaches set to zero, instead of `w` being zeroed
 /// first (the same sums: `0 + x` is `x`); else `w` is zeroed first.
+///
+/// `rank`: the rigid-mode completion's term over the same rows, added by
+/// the mirror in place (each pair of entries gets the term's entry of the
+/// row before, the same on both sides). Returns whether it was added; if
+/// not, the caller adds it.
+#[allow(clippy::too_many_arguments)]
 fn contract(
     cache: &mut ColumnCache,
     sc: &mut Scratch,
@@ -247,7 +272,8 @@ fn contract(
     w: &mut [f64],
     m: usize,
     block: WBlock,
-) {
+    rank: Option<&Rank12<'_>>,
+) -> bool {
     // Each pair of groups once, read where the cache keeps it: with the
     // groups in the order of their column ids, group `gj` takes the Gram
     // blocks `G_{gi,gj}` of the groups `gi` before it (one run of the
@@ -352,13 +378,16 @@ fn contract(
         }
     }
     if in_place {
-        mirror_in_place(w, m, r0, k);
+        let rank = rank.filter(|r| r.rows == &sc.rows[..]);
+        mirror_in_place(w, m, r0, k, rank);
         for &gj in &sc.order {
             let (sj, ej) = sc.groups[gj as usize];
             self_block(cache, sc.cols[gj as usize], h2, &entries[sj..ej], w, m);
         }
+        rank.is_some()
     } else {
         mirror_into(&sc.tri, &sc.rows, w, m);
+        false
     }
 }
 
@@ -494,34 +523,80 @@ fn mirror_into_portable(t: &[f64], rows: &[u32], w: &mut [f64], m: usize) {
 /// `W_B ← W_B + W_Bᵀ` for the `k × k` block `B` of `w` at rows and columns
 /// `r0..r0 + k`, in tiles, each pair of tiles read and written once. Entry
 /// `(i, j)` becomes `w[i, j] + w[j, i]`, the sum [`mirror_into`] forms from
-/// `tri`. In AVX2 lanes where the CPU has them.
-fn mirror_in_place(w: &mut [f64], m: usize, r0: usize, k: usize) {
+/// `tri`; with `rank` (over the same rows), `w[i, j] + w[j, i] + R(i, j)`
+/// on both sides, `R(i, j)` the term's entry `(i, j)` for `i ≤ j`, as
+/// [`Deflation::add_prepared`] sums it (the term is symmetric; its two
+/// sums differ by rounding only, and here both sides get the same one). In
+/// AVX2 lanes where the CPU has them.
+fn mirror_in_place(w: &mut [f64], m: usize, r0: usize, k: usize, rank: Option<&Rank12<'_>>) {
     #[cfg(target_arch = "x86_64")]
     if crate::math::has_avx2_fma() {
         // SAFETY: the CPU supports the features the function is compiled for.
-        return unsafe { mirror_in_place_avx2(w, m, r0, k) };
+        return unsafe {
+            match rank {
+                Some(r) => mirror_in_place_avx2::<true>(w, m, r0, k, r.soa, r.coef),
+                None => mirror_in_place_avx2::<false>(w, m, r0, k, &[], &[]),
+            }
+        };
     }
-    mirror_in_place_portable(w, m, r0, k);
+    match rank {
+        Some(r) => mirror_in_place_portable::<true>(w, m, r0, k, r.soa, r.coef),
+        None => mirror_in_place_portable::<false>(w, m, r0, k, &[], &[]),
+    }
 }
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
-fn mirror_in_place_avx2(w: &mut [f64], m: usize, r0: usize, k: usize) {
-    mirror_in_place_portable(w, m, r0, k);
+fn mirror_in_place_avx2<const RANK: bool>(
+    w: &mut [f64],
+    m: usize,
+    r0: usize,
+    k: usize,
+    soa: &[f64],
+    coef: &[f64],
+) {
+    mirror_in_place_portable::<RANK>(w, m, r0, k, soa, coef);
 }
 
 /// The kernel of [`mirror_in_place`]: full tiles through fixed-size arrays
-/// (as in [`mirror_into_portable`]), partial tiles entry by entry.
+/// (as in [`mirror_into_portable`]), partial tiles entry by entry. With
+/// `RANK`, the term's entries of a tile's rows over its columns, summed as
+/// `rank12_row` sums them.
 #[inline(always)]
-fn mirror_in_place_portable(w: &mut [f64], m: usize, r0: usize, k: usize) {
+fn mirror_in_place_portable<const RANK: bool>(
+    w: &mut [f64],
+    m: usize,
+    r0: usize,
+    k: usize,
+    soa: &[f64],
+    coef: &[f64],
+) {
     const TILE: usize = 8;
     let at = |i: usize, j: usize| (r0 + i) * m + r0 + j;
+    // The term's entry (i, j): row i's coefficients on column j.
+    let term = |i: usize, j: usize| -> f64 {
+        let c = &coef[12 * i..][..12];
+        let u = |q: usize| soa[q * k + j];
+        let su =
+            0.0 + c[0] * u(0) + c[1] * u(1) + c[2] * u(2) + c[3] * u(3) + c[4] * u(4) + c[5] * u(5);
+        let sv = 0.0
+            + c[6] * u(6)
+            + c[7] * u(7)
+            + c[8] * u(8)
+            + c[9] * u(9)
+            + c[10] * u(10)
+            + c[11] * u(11);
+        su - sv
+    };
     for i0 in (0..k).step_by(TILE) {
         let ni = TILE.min(k - i0);
-        // The diagonal tile: each pair `i < j` of it once.
+        // The diagonal tile: each pair `i ≤ j` of it once.
         for i in 0..ni {
             for j in i..ni {
-                let s = w[at(i0 + i, i0 + j)] + w[at(i0 + j, i0 + i)];
+                let mut s = w[at(i0 + i, i0 + j)] + w[at(i0 + j, i0 + i)];
+                if RANK {
+                    s += term(i0 + i, i0 + j);
+                }
                 w[at(i0 + i, i0 + j)] = s;
                 w[at(i0 + j, i0 + i)] = s;
             }
@@ -541,6 +616,31 @@ fn mirror_in_place_portable(w: &mut [f64], m: usize, r0: usize, k: usize) {
                         *o += b[j][i];
                     }
                 }
+                if RANK {
+                    // The tile's columns of `U` and `V`, then row by row.
+                    let cols: [&[f64; TILE]; 12] =
+                        std::array::from_fn(|q| soa[q * k + j0..][..TILE].try_into().unwrap());
+                    for (i, ar) in a.iter_mut().enumerate() {
+                        let c: &[f64; 12] = coef[12 * (i0 + i)..][..12].try_into().unwrap();
+                        for j in 0..TILE {
+                            let su = 0.0
+                                + c[0] * cols[0][j]
+                                + c[1] * cols[1][j]
+                                + c[2] * cols[2][j]
+                                + c[3] * cols[3][j]
+                                + c[4] * cols[4][j]
+                                + c[5] * cols[5][j];
+                            let sv = 0.0
+                                + c[6] * cols[6][j]
+                                + c[7] * cols[7][j]
+                                + c[8] * cols[8][j]
+                                + c[9] * cols[9][j]
+                                + c[10] * cols[10][j]
+                                + c[11] * cols[11][j];
+                            ar[j] += su - sv;
+                        }
+                    }
+                }
                 for i in 0..TILE {
                     w[at(i0 + i, j0)..][..TILE].copy_from_slice(&a[i]);
                     for (j, br) in b.iter_mut().enumerate() {
@@ -553,7 +653,10 @@ fn mirror_in_place_portable(w: &mut [f64], m: usize, r0: usize, k: usize) {
             } else {
                 for i in 0..ni {
                     for j in 0..nj {
-                        let s = w[at(i0 + i, j0 + j)] + w[at(j0 + j, i0 + i)];
+                        let mut s = w[at(i0 + i, j0 + j)] + w[at(j0 + j, i0 + i)];
+                        if RANK {
+                            s += term(i0 + i, j0 + j);
+                        }
                         w[at(i0 + i, j0 + j)] = s;
                         w[at(j0 + j, i0 + i)] = s;
                     }
@@ -709,6 +812,7 @@ mod tests {
                 &mut w,
                 m,
                 WBlock::Written,
+                None,
             );
             let mut want = start.clone();
             for a in &entries {
@@ -780,30 +884,60 @@ mod tests {
     /// `mirror_in_place` makes the block at `r0..r0 + k` of `w` into
     /// `W_B + W_Bᵀ` (each entry the sum `w[i, j] + w[j, i]`, as
     /// [`mirror_into`] forms it) and leaves the rest of `w` alone; in AVX2
-    /// lanes and portably.
+    /// lanes and portably. With a rank-12 term, entries `(i, j)` and
+    /// `(j, i)` both gain the term's `(min, max)` entry, summed as
+    /// `Deflation::add_prepared` sums it, after the pair.
     #[test]
     fn mirror_in_place_sums_the_block_and_its_transpose() {
         for k in [0, 1, 7, 8, 9, 16, 19, 24] {
             for r0 in [0, 3] {
-                let m = k + r0 + 2;
-                let start: Vec<f64> = (0..m * m).map(|i| test_value(i, 4)).collect();
-                let mut want = start.clone();
-                for i in 0..k {
-                    for j in 0..k {
-                        let (r, c) = (r0 + i, r0 + j);
-                        want[r * m + c] = start[r * m + c] + start[c * m + r];
+                for with_rank in [false, true] {
+                    let m = k + r0 + 2;
+                    let start: Vec<f64> = (0..m * m).map(|i| test_value(i, 4)).collect();
+                    let soa: Vec<f64> = (0..12 * k).map(|i| test_value(i, 5)).collect();
+                    let coef: Vec<f64> = (0..12 * k).map(|i| test_value(i, 6)).collect();
+                    let rows: Vec<u32> = (r0 as u32..(r0 + k) as u32).collect();
+                    let term = |i: usize, j: usize| {
+                        let (a, b) = (&coef[12 * i..12 * i + 6], &coef[12 * i + 6..12 * i + 12]);
+                        let mut su = 0.0;
+                        let mut sv = 0.0;
+                        for c in 0..6 {
+                            su += a[c] * soa[c * k + j];
+                            sv += b[c] * soa[(6 + c) * k + j];
+                        }
+                        su - sv
+                    };
+                    let mut want = start.clone();
+                    for i in 0..k {
+                        for j in 0..k {
+                            let (r, c) = (r0 + i, r0 + j);
+                            want[r * m + c] = start[r * m + c] + start[c * m + r];
+                            if with_rank {
+                                want[r * m + c] += term(i.min(j), i.max(j));
+                            }
+                        }
                     }
-                }
-                let mut fast = start.clone();
-                mirror_in_place(&mut fast, m, r0, k);
-                let mut portable = start.clone();
-                mirror_in_place_portable(&mut portable, m, r0, k);
-                for (i, w) in want.iter().enumerate() {
-                    assert_eq!(fast[i].to_bits(), w.to_bits(), "k {k}, r0 {r0}, {i}");
-                    assert_eq!(portable[i].to_bits(), w.to_bits(), "k {k}, r0 {r0}, {i}");
-                }
-                if k > 0 {
-                    assert!(want != start);
+                    let rank = Rank12 {
+                        rows: &rows,
+                        soa: &soa,
+                        coef: &coef,
+                    };
+                    let mut fast = start.clone();
+                    mirror_in_place(&mut fast, m, r0, k, with_rank.then_some(&rank));
+                    let mut portable = start.clone();
+                    if with_rank {
+                        mirror_in_place_portable::<true>(&mut portable, m, r0, k, &soa, &coef);
+                    } else {
+                        mirror_in_place_portable::<false>(&mut portable, m, r0, k, &[], &[]);
+                    }
+                    for (i, w) in want.iter().enumerate() {
+                        let at = format!("k {k}, r0 {r0}, rank {with_rank}, {i}");
+                        assert_eq!(fast[i].to_bits(), w.to_bits(), "{at}");
+                        assert_eq!(portable[i].to_bits(), w.to_bits(), "{at}");
+                    }
+                    if k > 0 {
+                        assert!(want != start);
+                    }
                 }
             }
         }

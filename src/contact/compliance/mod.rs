@@ -289,6 +289,8 @@ impl BodyCompliance {
                         )?,
                         None => false,
                     };
+                let complete = completes(self.rigid_modes, body, mode, &view)
+                    && self.deflation.prepare(body, &view);
                 if !on_backend {
                     group(entries, &mut self.scratch.groups);
                     factorized::accumulate(
@@ -301,13 +303,10 @@ impl BodyCompliance {
                         w,
                         m,
                         block,
+                        complete.then_some(&mut self.deflation),
                     );
-                }
-                if completes(self.rigid_modes, body, mode, &view)
-                    && self.deflation.prepare(body, &view)
-                {
-                    let cache = (!on_backend).then_some(&self.cache);
-                    self.deflation.add_to_w(&view, cache, entries, h2, w, m);
+                } else if complete {
+                    self.deflation.add_to_w(&view, None, entries, h2, w, m);
                 }
                 Ok(())
             }
@@ -508,6 +507,12 @@ mod tests {
         let mut comp = BodyCompliance::new();
         comp.rigid_modes = rigid;
         comp.block = block;
+        let mut rows: Vec<u32> = entries.iter().map(|e| e.row).collect();
+        rows.sort_unstable();
+        rows.dedup();
+        let contiguous = rows
+            .last()
+            .is_some_and(|&l| (l - rows[0]) as usize + 1 == rows.len());
         let start = if block == WBlock::Unset {
             f64::NAN
         } else {
@@ -527,6 +532,10 @@ mod tests {
         .unwrap();
         assert_eq!(comp.block, WBlock::Written, "the block serves one build");
         assert_eq!(comp.deflation.active, rigid);
+        // The completion's term goes in with the mirror where `W` is built
+        // in place.
+        let fused = rigid && block != WBlock::Written && contiguous;
+        assert_eq!(comp.deflation.fused_builds, usize::from(fused));
         w
     }
 
@@ -613,7 +622,8 @@ mod tests {
     /// built in place: the same `W` as through `tri`, to the bit where each
     /// row has entries at one node only, and to rounding where a row's
     /// entries span nodes (the self-blocks of the nodes are then summed in
-    /// another order). Rows that are not contiguous go through `tri` even
+    /// another order, and the completion's term before the self-blocks,
+    /// by the mirror). Rows that are not contiguous go through `tri` even
     /// when fresh, and the block serves one build only. A build into a `w`
     /// of NaN ([`WBlock::Unset`]) gives the in-place `W` to the bit, both
     /// where it writes every entry itself (its rows all of `w`'s) and where
@@ -649,7 +659,9 @@ mod tests {
                     }
                     let scale = through_tri.iter().fold(0.0f64, |a, v| a.max(v.abs()));
                     assert!(scale > 0.0 && in_place.iter().all(|v| v.is_finite()));
-                    let tol = if per_row == 1 || spread {
+                    // With the completion in place its term is added
+                    // before the self-blocks, not after: rounding again.
+                    let tol = if (per_row == 1 && !rigid) || spread {
                         0.0
                     } else {
                         1e-14 * scale
