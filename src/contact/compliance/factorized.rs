@@ -260,9 +260,9 @@ pub(super) fn accumulate(
 /// first (the same sums: `0 + x` is `x`); else `w` is zeroed first.
 ///
 /// `rank`: the rigid-mode completion's term over the same rows, added by
-/// the mirror in place (each pair of entries gets the term's entry of the
-/// row before, the same on both sides). Returns whether it was added; if
-/// not, the caller adds it.
+/// the mirror in place (entries `(i, j)` and `(j, i)` both get the term's
+/// entry `(min, max)`). Returns whether it was added; if not, the caller
+/// adds it.
 #[allow(clippy::too_many_arguments)]
 fn contract(
     cache: &mut ColumnCache,
