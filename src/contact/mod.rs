@@ -501,6 +501,10 @@ impl ContactSolver {
                     .map(|b| &mut **b as &mut dyn ComplianceBackend),
             );
             *bodies.body_mut(bi).column_prefetch_mut() = prefetch;
+            if result.is_err() {
+                // Whatever the failed build got to, `w` is left defined.
+                self.w.fill(0.0);
+            }
             result?;
             self.report.solves += compliance.solves();
             self.report.gram_blocks += compliance.gram_blocks();

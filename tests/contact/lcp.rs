@@ -34,6 +34,14 @@ fn shipped() -> Vec<(String, ContactProblem)> {
     out
 }
 
+/// `δ₀ + W λ` of `p`, summed row by row.
+fn delta_of(p: &ContactProblem, lambda: &[f64]) -> Vec<f64> {
+    let m = p.m();
+    (0..m)
+        .map(|i| p.delta0[i] + (0..m).map(|j| p.w[i * m + j] * lambda[j]).sum::<f64>())
+        .collect()
+}
+
 fn settings(solver: LcpSolver, target: f64, limit: usize) -> LcpSettings {
     LcpSettings {
         solver,
@@ -245,10 +253,7 @@ fn recorded_cataract_problems_meet_signorini_and_the_cone() {
             let (lambda, delta, rep) = p.solve(&settings(solver, 1e-6, 1000)).unwrap();
             // The `δ` the solve kept (by rows of `W`, not made afresh at the
             // end) is `δ₀ + W λ` of its answer to round-off.
-            let m = p.m();
-            let fresh: Vec<f64> = (0..m)
-                .map(|i| p.delta0[i] + (0..m).map(|j| p.w[i * m + j] * lambda[j]).sum::<f64>())
-                .collect();
+            let fresh = delta_of(&p, &lambda);
             let scale = fresh
                 .iter()
                 .chain(&p.delta0)
@@ -304,11 +309,7 @@ fn solve_until_stops_where_told_and_is_solve_otherwise() {
         let r = until(&mut l, &mut scratch, 3);
         assert_eq!(r.iterations, 3, "{name}");
         assert!(r.capped && r.residual > 1e-6, "{name}: {r:?}");
-        let mut d = vec![0.0; p.m()];
-        for (i, di) in d.iter_mut().enumerate() {
-            *di = p.delta0[i] + (0..p.m()).map(|j| p.w[i * p.m() + j] * l[j]).sum::<f64>();
-        }
-        for (a, b) in d.iter().zip(scratch.delta()) {
+        for (a, b) in delta_of(&p, &l).iter().zip(scratch.delta()) {
             assert!((a - b).abs() <= 1e-12 * (1.0 + a.abs()), "{name}: {a} {b}");
         }
         let r = lcp::solve(&p.w, &p.delta0, &p.rows, &p.mu, &mut l, &set, &mut scratch);

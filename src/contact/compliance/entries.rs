@@ -123,5 +123,7 @@ pub(crate) enum WBlock {
     /// entries): the build writes every entry of `w`, or zeroes `w` first.
     /// A `Factorized` build in place whose rows are all of `w`'s does the
     /// former and so saves a pass over `w`; every other build the latter.
+    /// A build that fails may leave `w` partly unset: the contact solver
+    /// then zeroes it.
     Unset,
 }

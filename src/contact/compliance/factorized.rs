@@ -574,20 +574,8 @@ fn mirror_in_place_portable<const RANK: bool>(
     const TILE: usize = 8;
     let at = |i: usize, j: usize| (r0 + i) * m + r0 + j;
     // The term's entry (i, j): row i's coefficients on column j.
-    let term = |i: usize, j: usize| -> f64 {
-        let c = &coef[12 * i..][..12];
-        let u = |q: usize| soa[q * k + j];
-        let su =
-            0.0 + c[0] * u(0) + c[1] * u(1) + c[2] * u(2) + c[3] * u(3) + c[4] * u(4) + c[5] * u(5);
-        let sv = 0.0
-            + c[6] * u(6)
-            + c[7] * u(7)
-            + c[8] * u(8)
-            + c[9] * u(9)
-            + c[10] * u(10)
-            + c[11] * u(11);
-        su - sv
-    };
+    let row_coef = |i: usize| -> &[f64; 12] { coef[12 * i..][..12].try_into().unwrap() };
+    let term = |i: usize, j: usize| term_entry(row_coef(i), |q| soa[q * k + j]);
     for i0 in (0..k).step_by(TILE) {
         let ni = TILE.min(k - i0);
         // The diagonal tile: each pair `i ≤ j` of it once.
@@ -621,23 +609,9 @@ fn mirror_in_place_portable<const RANK: bool>(
                     let cols: [&[f64; TILE]; 12] =
                         std::array::from_fn(|q| soa[q * k + j0..][..TILE].try_into().unwrap());
                     for (i, ar) in a.iter_mut().enumerate() {
-                        let c: &[f64; 12] = coef[12 * (i0 + i)..][..12].try_into().unwrap();
-                        for j in 0..TILE {
-                            let su = 0.0
-                                + c[0] * cols[0][j]
-                                + c[1] * cols[1][j]
-                                + c[2] * cols[2][j]
-                                + c[3] * cols[3][j]
-                                + c[4] * cols[4][j]
-                                + c[5] * cols[5][j];
-                            let sv = 0.0
-                                + c[6] * cols[6][j]
-                                + c[7] * cols[7][j]
-                                + c[8] * cols[8][j]
-                                + c[9] * cols[9][j]
-                                + c[10] * cols[10][j]
-                                + c[11] * cols[11][j];
-                            ar[j] += su - sv;
+                        let c = row_coef(i0 + i);
+                        for (j, o) in ar.iter_mut().enumerate() {
+                            *o += term_entry(c, |q| cols[q][j]);
                         }
                     }
                 }
@@ -664,6 +638,18 @@ fn mirror_in_place_portable<const RANK: bool>(
             }
         }
     }
+}
+
+/// One entry of the rigid-mode completion's term: `c[..6]·u − c[6..]·v`,
+/// `u(q)` for `q < 6` the column's `U` and then its `V`, each dot product
+/// summed in order as `rank12_row` sums it.
+#[inline(always)]
+fn term_entry(c: &[f64; 12], u: impl Fn(usize) -> f64) -> f64 {
+    let su =
+        0.0 + c[0] * u(0) + c[1] * u(1) + c[2] * u(2) + c[3] * u(3) + c[4] * u(4) + c[5] * u(5);
+    let sv =
+        0.0 + c[6] * u(6) + c[7] * u(7) + c[8] * u(8) + c[9] * u(9) + c[10] * u(10) + c[11] * u(11);
+    su - sv
 }
 
 /// `dx = h² Q Pᵀ L⁻ᵀ D⁻¹ (Y λ)`: from the cached columns when `cache` holds

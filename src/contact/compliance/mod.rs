@@ -204,32 +204,9 @@ impl BodyCompliance {
         m: usize,
         backend: Option<&mut dyn ComplianceBackend>,
     ) -> Result<()> {
-        let block = std::mem::take(&mut self.block);
+        let mut block = std::mem::take(&mut self.block);
         self.cache.solves = 0;
         self.cache.gram_blocks = 0;
-        let unset = block == WBlock::Unset;
-        let result = self.build(body, prefetch, mode, h, entries, w, m, backend, block);
-        if result.is_err() && unset {
-            // Whatever the build got to, `w` is left defined.
-            w.fill(0.0);
-        }
-        result
-    }
-
-    /// [`Self::accumulate`] for the `block` it was given.
-    #[allow(clippy::too_many_arguments)]
-    fn build(
-        &mut self,
-        body: &DeformableBody,
-        prefetch: &mut ColumnPrefetch,
-        mode: ComplianceMode,
-        h: f64,
-        entries: &mut [JacEntry],
-        w: &mut [f64],
-        m: usize,
-        backend: Option<&mut dyn ComplianceBackend>,
-        mut block: WBlock,
-    ) -> Result<()> {
         let in_place_capable = matches!(mode, ComplianceMode::Factorized | ComplianceMode::Exact);
         if block == WBlock::Unset && (entries.is_empty() || !in_place_capable) {
             w.fill(0.0);

@@ -294,9 +294,9 @@ struct Split {
     k_rows: Vec<usize>,
     k_shift: f64,
     /// Phase 1's sliding normal rows ([`phase1_slides`]): each one's
-    /// position in `free` and `μ P` (the tangential force per unit normal
-    /// force its column carries).
-    slide_pos: Vec<(usize, f64, f64)>,
+    /// position in `free`, `μ` and `P` (its column carries the tangential
+    /// force `μ P` per unit normal force).
+    slide_pos: Vec<(usize, f64, [f64; 2])>,
     /// `K`, then its Cholesky factor (column-major, `|A|²`, lower triangle).
     k: Vec<f64>,
     /// `W_AS`, then `X = K⁻¹ W_AS` (column-major, `|A| × |S|`).
@@ -1148,11 +1148,8 @@ fn solve_phase1(w: &[f64], m: usize, s: &mut SubspaceScratch) -> bool {
     sp.kx_valid = false;
     sp.x.clear();
     sp.x.resize(n * ns, 0.0);
-    for (l, &(j, ..)) in sp.slide_pos.iter().enumerate() {
+    for (l, &(j, mu, p)) in sp.slide_pos.iter().enumerate() {
         let cj = s.free[j];
-        let Some(Slide { p, mu, .. }) = s.slide[cj] else {
-            unreachable!("a position of a sliding row")
-        };
         let (w1, w2) = (
             &w[(cj + 1) * m..(cj + 2) * m],
             &w[(cj + 2) * m..(cj + 3) * m],
@@ -1224,7 +1221,7 @@ const SPLIT_BACKWARD_ERROR: f64 = 1e-10;
 fn backward_error(w: &[f64], m: usize, s: &SubspaceScratch, x: &[f64], full: bool) -> f64 {
     let b = &s.rhs;
     let n = s.free.len();
-    let slides: &[(usize, f64, f64)] = if full { &[] } else { &s.split.slide_pos };
+    let slides: &[(usize, f64, [f64; 2])] = if full { &[] } else { &s.split.slide_pos };
     let (mut r_max, mut m_max) = (0.0f64, 0.0f64);
     let x_max = x.iter().fold(0.0f64, |a, v| a.max(v.abs()));
     let b_max = b.iter().fold(0.0f64, |a, v| a.max(v.abs()));
@@ -1237,10 +1234,11 @@ fn backward_error(w: &[f64], m: usize, s: &SubspaceScratch, x: &[f64], full: boo
         let (mut sum, mut abs) = free_dot_abs(1.0, row, 0.0, row, &s.free, x);
         sum += s.shift * row[r] * x[i];
         abs += s.shift * row[r].abs();
-        for &(j, mu_p0, mu_p1) in slides {
+        for &(j, mu, p) in slides {
             let cj = s.free[j];
             let plain = row[cj] * if j == i { 1.0 + s.shift } else { 1.0 };
-            let t = mu_p0 * row[cj + 1] + mu_p1 * row[cj + 2];
+            // As `delta_columns` forms it.
+            let t = mu * (p[0] * row[cj + 1] + p[1] * row[cj + 2]);
             sum += t * x[j];
             abs += (plain + t).abs() - plain.abs();
         }
@@ -1311,7 +1309,7 @@ fn phase1_slides(s: &mut SubspaceScratch) {
     sp.slide_pos
         .extend(s.free.iter().enumerate().filter_map(|(j, &cj)| {
             let Slide { p, mu, .. } = s.slide[cj]?;
-            Some((j, mu * p[0], mu * p[1]))
+            Some((j, mu, p))
         }));
 }
 
