@@ -196,6 +196,7 @@ fn msh_roundtrip_ascii_and_binary() {
         io::load_msh(dir.join("missing.msh"), ValidateOptions::default()),
         Err(SoftTissueError::Io { .. })
     ));
+    let _ = std::fs::remove_dir_all(&dir);
 }
 
 #[test]
