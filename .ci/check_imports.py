@@ -74,6 +74,9 @@ edges = {}
 for m, p in files.items():
     src = open(p).read()
     src = re.sub(r"//.*", "", src)
+    # A visibility restriction (`pub(in crate::a::b)`) names a module without
+    # depending on it.
+    src = re.sub(r"\bpub\s*\(\s*in\s+[\w:]+\s*\)", "pub", src)
     # Inline modules (`mod tests { .. }` and the like): their `super` is this file.
     inline = []
     for mm in re.finditer(r"\bmod\s+\w+\s*\{", src):

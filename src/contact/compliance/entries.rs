@@ -108,7 +108,7 @@ pub(super) fn group(entries: &[JacEntry], groups: &mut Vec<(usize, usize)>) {
 }
 
 /// What a body's build of `W` may assume of `w`, set by the contact solver
-/// for one [`BodyCompliance::accumulate`].
+/// for one [`BodyCompliance::accumulate`](super::BodyCompliance::accumulate).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub(crate) enum WBlock {
     /// Another body has written some of this body's rows: the build only

@@ -21,7 +21,7 @@
 //!   every contact back into its cone, so the answer is always a sweep's.
 //!   `W p` is carried along from the sweeps' own changes of `δ`, so the
 //!   acceleration costs `O(m)` per sweep, not a product with `W`.
-//! - [`LcpSolver::Subspace`] (the default, `subspace.rs`): after each block
+//! - [`LcpSolver::Subspace`] (the default, `subspace/`): after each block
 //!   Gauss–Seidel sweep, a semismooth Newton step on the active set (dense
 //!   factorizations of the free rows: an LU, then in its second phase a
 //!   Cholesky factor and a Schur complement), kept when it lowers the

@@ -15,7 +15,7 @@ pub enum LcpSolver {
     /// Block Gauss–Seidel accelerated by nonsmooth nonlinear conjugate gradients.
     Nncg,
     /// Block Gauss–Seidel with a Newton step on the active set every few
-    /// sweeps (subspace minimization, `subspace.rs`).
+    /// sweeps (subspace minimization, `subspace/`).
     #[default]
     Subspace,
 }
