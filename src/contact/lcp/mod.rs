@@ -56,9 +56,10 @@
 //! `δ = δ₀ + W λ` is kept up to date: a row whose force changes adds its
 //! column of `W` to `δ` (`W` is symmetric), and a row whose force stays (an
 //! open contact at `λ = 0`, the many alarm-band contacts) costs one read. A
-//! sweep therefore costs `m` multiply-adds per *changed* row, not `m²`, and
-//! the residuals are recomputed from scratch at the end, so nothing drifts
-//! into the report.
+//! sweep therefore costs `m` multiply-adds per *changed* row, not `m²`; the
+//! carried `δ` stays within round-off of `δ₀ + W λ` (NNCG's momentum, which
+//! drifts, forms it again now and then and at the end), and the report's
+//! residuals are worked out from it.
 mod block;
 mod pgs;
 mod problem;

@@ -59,8 +59,9 @@ pub fn solve(
 
 /// [`solve`] that also stops after any sweep at which `stop()` says so (a
 /// time budget, for example); the report is then `capped`. One solve, not a
-/// series of short ones: `δ = W λ + δ₀` (an `O(m²)` product) is formed at
-/// the start and the end only, and carried through the sweeps.
+/// series of short ones: `δ = W λ + δ₀` is formed once, at the start (`m`
+/// multiply-adds per nonzero force of the warm start), and carried through
+/// the sweeps and subspace steps.
 #[allow(clippy::too_many_arguments)]
 pub fn solve_until(
     w: &[f64],
@@ -186,7 +187,7 @@ pub fn solve_until(
     }
     // The sweeps and the subspace steps keep `δ` by rows of `W` (a change of
     // a force adds its row), to round-off; NNCG's momentum carries `W p`,
-    // which drifts, so its `δ` is made afresh (an `m²` pass, as at the start).
+    // which drifts, so its `δ` is made afresh (as at the start).
     if nncg {
         exact_delta(w, delta0, lambda, &mut s.delta);
     }

@@ -274,7 +274,7 @@ pub(super) fn step(
         return not_kept(s);
     }
     // The best iterate, back in the cone, if it beats the start (its `δ`
-    // kept by the changed rows; the solve forms `W λ` afresh at its end).
+    // kept by the changed rows).
     std::mem::swap(&mut s.lambda, &mut s.best);
     std::mem::swap(&mut s.delta, &mut s.best_delta);
     s.prev.clone_from(&s.lambda);
@@ -446,11 +446,11 @@ fn resume_from_best(s: &mut SubspaceScratch) {
 }
 
 /// `δ += W (λ − λ_prev)` over the rows whose force changed (`W` is
-/// symmetric, so row `r` is column `r`): `m` multiply-adds per changed row
-/// instead of the `m²` of [`super::types::exact_delta`]. A Newton update changes the free
-/// rows only (a third of them on the accuracy study's lens through the hole)
-/// and a classification a few, so this was 40 % of a subspace step. The
-/// solve recomputes `δ` exactly at its end.
+/// symmetric, so row `r` is column `r`): `m` multiply-adds per changed row,
+/// where forming `δ₀ + W λ` again ([`super::types::exact_delta`]) would take
+/// `m` per nonzero force. A Newton update changes the free rows only (a third
+/// of them on the accuracy study's lens through the hole) and a
+/// classification a few, so this was 40 % of a subspace step.
 fn update_delta(w: &[f64], prev: &[f64], lambda: &[f64], delta: &mut [f64]) {
     let m = delta.len();
     for (r, (&a, &b)) in prev.iter().zip(lambda).enumerate() {
