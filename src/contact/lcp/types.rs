@@ -319,7 +319,12 @@ mod tests {
         let mut delta = vec![f64::NAN; m];
         exact_delta(&w, &delta0, &lambda, &mut delta);
         for r in 0..m {
-            let scale = delta0[r].abs() + (0..m).map(|j| lambda[j].abs()).sum::<f64>();
+            // Round-off of a sum of `m + 1` terms, a few ε of their magnitudes.
+            let scale = delta0[r].abs()
+                + (0..m)
+                    .map(|j| (w[j * m + r] * lambda[j]).abs())
+                    .filter(|v| !v.is_nan())
+                    .sum::<f64>();
             assert!(
                 (delta[r] - want[r]).abs() <= 1e-14 * scale,
                 "row {r}: {} against {}",
