@@ -461,8 +461,13 @@ fn print_summary(s: &HeadlessSummary, params: &CataractParams, recording: Option
         end * 1e3
     );
     println!(
-        "max penetration at step end {:.2e} m, lens-sclera {:.2e} m (tolerance {:.2e} m)",
-        s.max_penetration, s.max_tissue_penetration, s.tolerance
+        "max penetration at step end {:.2e} m (step {}, {} contact passes), lens-sclera {:.2e} m \
+         (tolerance {:.2e} m)",
+        s.max_penetration,
+        s.deepest_step.0,
+        s.deepest_step.1,
+        s.max_tissue_penetration,
+        s.tolerance
     );
     let (in_faces, at_end, triangles) = s.vectis_in_faces;
     println!(

@@ -57,6 +57,10 @@ pub struct HeadlessSummary {
     pub max_penetration: f64,
     /// The part of [`Self::max_penetration`] between the two bodies (lens–sclera), metres.
     pub max_tissue_penetration: f64,
+    /// The step that ended with [`Self::max_penetration`] and its contact
+    /// passes (a step past the tolerance has run out of passes where it ran
+    /// `ContactSettings::max_passes`).
+    pub deepest_step: (u64, usize),
     /// How deep the vectis reaches inside the lens's surface triangles between
     /// their vertices, metres: the deepest point of the [`FACE_GRID`] on each triangle
     /// near the vectis, at the end of every step, and at the end of the run
@@ -350,6 +354,7 @@ pub fn run_headless_with(
     let mut band_lcp = (0usize, 0usize);
     let mut cg = 0usize;
     let mut max_pen: f64 = 0.0;
+    let mut deepest_step = (0, 0);
     let mut max_lens_speed: f64 = 0.0;
     let mut max_passes = (0, 0);
     let mut slowest = SlowestStep::default();
@@ -512,7 +517,10 @@ pub fn run_headless_with(
         }
         checker.detect(&bodies, &tools, h, PassKind::First)?;
         for c in checker.contacts() {
-            max_pen = max_pen.max(-c.gap);
+            if -c.gap > max_pen {
+                max_pen = -c.gap;
+                deepest_step = (d.steps, d.contact_passes);
+            }
             if matches!(c.other, bevy_soft_tissue::contact::ContactOther::Body(_)) {
                 max_tissue = max_tissue.max(-c.gap);
             }
@@ -578,6 +586,7 @@ pub fn run_headless_with(
         ),
         median_ms_50_90: (!band.0.is_empty()).then(|| (med(&mut band.0), med(&mut band.1))),
         max_tissue_penetration: max_tissue,
+        deepest_step,
         vectis_in_faces,
         lcp_sweeps: (lcp_sweeps.0, lcp_sweeps.1 as f64 / jam_steps),
         jam: (
