@@ -461,7 +461,6 @@ impl ContactSolver {
         if first.is_none() {
             self.w.clear();
         }
-        self.w.truncate(m * m);
         self.w.resize(m * m, 0.0);
         self.row_written.clear();
         self.row_written.resize(m, false);
